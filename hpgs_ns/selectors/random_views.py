@@ -1,0 +1,30 @@
+"""`random`: the baseline every view-selection paper compares against."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Type
+
+import torch
+from nerfstudio.configs.base_config import InstantiateConfig
+
+from hpgs_ns.selectors.base import Selection, SelectionContext
+
+
+@dataclass
+class RandomSelectorConfig(InstantiateConfig):
+    """Uniformly random candidates, drawn from the datamanager's seeded generator (so `--seed` fixes them)."""
+
+    _target: Type = field(default_factory=lambda: RandomSelector)
+
+
+class RandomSelector:
+    """Picks candidates uniformly at random without replacement."""
+
+    def __init__(self, config: RandomSelectorConfig) -> None:
+        self.config = config
+
+    def select(self, context: SelectionContext) -> Selection:
+        order = torch.randperm(len(context.candidates), generator=context.generator).tolist()
+        picked = [context.candidates[i] for i in order[: context.num_to_pick]]
+        return Selection(indices=picked, scores={i: 0.0 for i in context.candidates})

@@ -1,0 +1,67 @@
+"""Two small fixes to nerfstudio's trainer that `hpgs` runs need.
+
+- A resumed run (`--load-dir`) ends at the configured total step count; stock nerfstudio runs another full
+  `max_num_iterations` after the checkpoint's step.
+- Learning rates are saved as Python floats: splatfacto's exponential scheduler returns numpy float64, which
+  ends up in the optimizer and scheduler state and makes `torch.load(weights_only=True)` (the default since
+  torch 2.6) refuse the checkpoint in stock `ns-eval`, `ns-viewer` and resume.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Type
+
+from nerfstudio.engine.schedulers import ExponentialDecayScheduler, ExponentialDecaySchedulerConfig
+from nerfstudio.engine.trainer import Trainer, TrainerConfig
+from torch.optim import Optimizer, lr_scheduler
+
+
+@dataclass
+class HpgsTrainerConfig(TrainerConfig):
+    """nerfstudio's TrainerConfig; resumed runs stop at `max_num_iterations` in total."""
+
+    _target: Type = field(default_factory=lambda: HpgsTrainer)
+
+
+class HpgsTrainer(Trainer):
+    """nerfstudio's Trainer whose resumed runs end at the configured total step count."""
+
+    config: HpgsTrainerConfig
+
+    def _load_checkpoint(self) -> None:
+        super()._load_checkpoint()
+        total = self.config.max_num_iterations
+        if self._start_step > 0:
+            self.config.max_num_iterations = max(total - self._start_step, 0)
+            self.step = self._start_step - 1  # what `_after_train` saves if nothing is left to run
+
+
+@dataclass
+class FloatExponentialDecaySchedulerConfig(ExponentialDecaySchedulerConfig):
+    """nerfstudio's exponential decay with warm-up, computed in Python floats (checkpoint-safe)."""
+
+    _target: Type = field(default_factory=lambda: FloatExponentialDecayScheduler)
+
+
+class FloatExponentialDecayScheduler(ExponentialDecayScheduler):
+    """Same schedule as `ExponentialDecayScheduler`; the multiplier is a Python float, never numpy."""
+
+    config: FloatExponentialDecaySchedulerConfig
+
+    def get_scheduler(self, optimizer: Optimizer, lr_init: float) -> lr_scheduler.LRScheduler:
+        cfg = self.config
+        lr_final = lr_init if cfg.lr_final is None else cfg.lr_final
+
+        def multiplier(step: int) -> float:
+            if step < cfg.warmup_steps:
+                frac = min(max(step / cfg.warmup_steps, 0.0), 1.0)
+                ramp = math.sin(0.5 * math.pi * frac) if cfg.ramp == "cosine" else frac
+                lr = cfg.lr_pre_warmup + (lr_init - cfg.lr_pre_warmup) * ramp
+            else:
+                t = min(max((step - cfg.warmup_steps) / (cfg.max_steps - cfg.warmup_steps), 0.0), 1.0)
+                lr = math.exp(math.log(lr_init) * (1 - t) + math.log(lr_final) * t)
+            return float(lr / lr_init)
+
+        return lr_scheduler.LambdaLR(optimizer, lr_lambda=multiplier)
