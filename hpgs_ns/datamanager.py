@@ -29,9 +29,9 @@ from nerfstudio.utils import writer
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from hpgs_ns.dataparser import MipNerf360DataParserConfig
-from hpgs_ns.selectors import RandomSelectorConfig, Selection, SelectionContext, SelectionError, check_selection
+from hpgs_ns.selectors import FarthestSelectorConfig, FisherSelectorConfig, RandomSelectorConfig, Selection, SelectionContext, SelectionError, check_selection
 
-SelectorName = Literal["random"]
+SelectorName = Literal["random", "farthest", "fisher"]
 
 
 class ActiveViewError(RuntimeError):
@@ -62,6 +62,10 @@ class ActiveDatamanagerConfig(FullImageDatamanagerConfig):
     """Which selector picks the next views."""
     random: RandomSelectorConfig = field(default_factory=RandomSelectorConfig)
     """Options of the `random` selector."""
+    farthest: FarthestSelectorConfig = field(default_factory=FarthestSelectorConfig)
+    """Options of the `farthest` selector."""
+    fisher: FisherSelectorConfig = field(default_factory=FisherSelectorConfig)
+    """Options of the `fisher` selector (FisherRF)."""
     selection_short_side: Optional[int] = None
     """Default render size (short side, pixels) for selectors that render views; None = dataset resolution."""
 

@@ -6,6 +6,7 @@ A selector never edits the datamanager's lists: it reads the context and returns
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass, field
 from typing import Callable, Dict, List, Optional, Protocol, Sequence
 
@@ -80,3 +81,25 @@ def check_selection(selection: Selection, context: SelectionContext) -> Selectio
     if bad:
         raise SelectionError(f"selector produced non-finite scores for views {bad[:5]}")
     return selection
+
+
+@contextlib.contextmanager
+def eval_mode(model):
+    """Render in eval mode (fixed background, full resolution, no densification bookkeeping), then restore."""
+    was_training = model.training
+    model.eval()
+    try:
+        yield model
+    finally:
+        model.train(was_training)
+
+
+def render_with_grad(model, cameras: Cameras, index: int, resolution_scale: float = 1.0) -> torch.Tensor:
+    """Render training view `index` with autograd on: [H, W, 3]. Call inside `eval_mode`.
+
+    Goes through `model.get_outputs` (not `get_outputs_for_camera`, which disables grad)."""
+    camera = cameras[int(index) : int(index) + 1].to(model.device)
+    if resolution_scale != 1.0:
+        camera.rescale_output_resolution(resolution_scale)
+    with torch.enable_grad():
+        return model.get_outputs(camera)["rgb"]
