@@ -29,9 +29,19 @@ from nerfstudio.utils import writer
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from hpgs_ns.dataparser import MipNerf360DataParserConfig
-from hpgs_ns.selectors import FarthestSelectorConfig, FisherSelectorConfig, RandomSelectorConfig, Selection, SelectionContext, SelectionError, check_selection
+from hpgs_ns.selectors import (
+    CondorcetSelectorConfig,
+    FarthestSelectorConfig,
+    FisherSelectorConfig,
+    HpgsSelectorConfig,
+    RandomSelectorConfig,
+    Selection,
+    SelectionContext,
+    SelectionError,
+    check_selection,
+)
 
-SelectorName = Literal["random", "farthest", "fisher"]
+SelectorName = Literal["random", "farthest", "fisher", "hpgs", "condorcet"]
 
 
 class ActiveViewError(RuntimeError):
@@ -66,6 +76,10 @@ class ActiveDatamanagerConfig(FullImageDatamanagerConfig):
     """Options of the `farthest` selector."""
     fisher: FisherSelectorConfig = field(default_factory=FisherSelectorConfig)
     """Options of the `fisher` selector (FisherRF)."""
+    hpgs: HpgsSelectorConfig = field(default_factory=HpgsSelectorConfig)
+    """Options of the `hpgs` selector (the paper's method)."""
+    condorcet: CondorcetSelectorConfig = field(default_factory=CondorcetSelectorConfig)
+    """Options of the `condorcet` selector (the paper's ablation)."""
     selection_short_side: Optional[int] = None
     """Default render size (short side, pixels) for selectors that render views; None = dataset resolution."""
 

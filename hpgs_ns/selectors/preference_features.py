@@ -1,0 +1,57 @@
+"""Shared by the `hpgs` and `condorcet` selectors: load the preference model, render views, run it in batches."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import List, Optional, Sequence
+
+import torch
+
+from hpgs_ns.selectors.base import SelectionContext, SelectionError
+
+DEFAULT_MODEL = Path(__file__).resolve().parent.parent / "assets" / "preference-default.pt"
+
+
+def load_preference_model(path: Optional[Path], device: str = "cpu"):
+    """Load a `hpgs train-pref` checkpoint (default: the model shipped in the package). One-line errors."""
+    from hpgs_ns.preference.model import PreferenceModel
+
+    path = Path(path) if path is not None else DEFAULT_MODEL
+    if not path.is_file():
+        hint = "train one with `hpgs train-pref`" if path != DEFAULT_MODEL else "reinstall hpgs-ns"
+        raise SelectionError(f"preference model {path} not found; pass --pipeline.datamanager.hpgs.model PATH or {hint}")
+    try:
+        return PreferenceModel.load(path, device=device).eval()
+    except SelectionError:
+        raise
+    except Exception as err:
+        raise SelectionError(f"{path} is not a usable preference-model checkpoint ({err}); retrain with `hpgs train-pref`") from err
+
+
+def _short_side(pref, requested: Optional[int]) -> int:
+    return int(requested or getattr(pref, "input_size", 224))
+
+
+@torch.no_grad()
+def _batched(pref, context: SelectionContext, views: Sequence[int], short_side: Optional[int], batch: int, fn: str) -> torch.Tensor:
+    pref.to(context.device)
+    outs: List[torch.Tensor] = []
+    side = _short_side(pref, short_side)
+    for start in range(0, len(views), batch):
+        chunk = list(views[start : start + batch])
+        images = [im.permute(2, 0, 1) for im in context.render(chunk, side)]
+        x = torch.cat([pref.preprocess(im[None]) for im in images])
+        outs.append(getattr(pref, fn)(x).float().cpu())
+    if not outs:
+        raise SelectionError("no views to run the preference model on")
+    return torch.cat(outs)
+
+
+def render_features(pref, context: SelectionContext, views: Sequence[int], short_side: Optional[int] = None, batch: int = 16) -> torch.Tensor:
+    """Preference features F(render) of `views`: [len(views), F]."""
+    return _batched(pref, context, views, short_side, batch, "features")
+
+
+def render_scores(pref, context: SelectionContext, views: Sequence[int], short_side: Optional[int] = None, batch: int = 16) -> torch.Tensor:
+    """Preference scores l(F(render)) of `views` (higher = worse reconstruction): [len(views)]."""
+    return _batched(pref, context, views, short_side, batch, "score").reshape(-1)
