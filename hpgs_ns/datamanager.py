@@ -101,7 +101,8 @@ class ActiveDatamanager(FullImageDatamanager):
         self.generator = torch.Generator().manual_seed(self.config.seed)
         self.active: List[int] = self._initial_views()
         self.history: List[Dict[str, Any]] = []
-        self.selector = self._setup_selector()
+        # Only training selects; ns-eval / ns-viewer (test modes) must open a run without the selector's files.
+        self.selector = self._setup_selector() if test_mode == "val" else None
         self.run_dir: Optional[Path] = None
         self._writer_ready = False
         self.train_unseen_cameras = self.sample_train_cameras()

@@ -83,9 +83,10 @@ def cosine_distance_to_set(cand: torch.Tensor, train: torch.Tensor, aggregate: s
     distances over the training views."""
     cand = torch.nn.functional.normalize(cand.double(), dim=-1, eps=1e-12)
     if aggregate == "median-feature":
-        centre = torch.nn.functional.normalize(train.double().median(dim=0).values, dim=-1, eps=1e-12)
+        # quantile(0.5) averages the two middle values for an even count (torch.median returns the lower one).
+        centre = torch.nn.functional.normalize(torch.quantile(train.double(), 0.5, dim=0), dim=-1, eps=1e-12)
         return 1.0 - cand @ centre
     if aggregate == "median-distance":
         train = torch.nn.functional.normalize(train.double(), dim=-1, eps=1e-12)
-        return (1.0 - cand @ train.T).median(dim=1).values
+        return torch.quantile(1.0 - cand @ train.T, 0.5, dim=1)
     raise ValueError(f"unknown aggregate {aggregate!r}")
