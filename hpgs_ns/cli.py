@@ -15,6 +15,7 @@ import tyro
 COMMANDS = {
     "demo": "hpgs_ns.demo:Demo",
     "make-scene": "hpgs_ns.synthetic_scene:MakeScene",
+    "collect": "hpgs_ns.collect:Collect",
 }
 
 

@@ -80,6 +80,9 @@ class ActiveDatamanagerConfig(FullImageDatamanagerConfig):
     """Options of the `hpgs` selector (the paper's method)."""
     condorcet: CondorcetSelectorConfig = field(default_factory=CondorcetSelectorConfig)
     """Options of the `condorcet` selector (the paper's ablation)."""
+    snapshot_every: int = 0
+    """If > 0, every this many steps (and at the last step) render every training-split view to
+    `<run dir>/snapshots/step-NNNNNN/` (what `hpgs collect` labels). Test views are never rendered."""
     selection_short_side: Optional[int] = None
     """Default render size (short side, pixels) for selectors that render views; None = dataset resolution."""
 
@@ -181,8 +184,45 @@ class ActiveDatamanager(FullImageDatamanager):
                 self.write_log()
             if model is not None and self.is_round_step(step):
                 self.run_round(step, model)
+            every = self.config.snapshot_every
+            if model is not None and every > 0 and step > 0 and step % every == 0:
+                self.write_snapshot(step, model)
 
-        return [TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], before_iteration)]
+        def after_training(step: int) -> None:
+            every = self.config.snapshot_every
+            if model is not None and every > 0 and (step + 1) % every == 0:
+                self.write_snapshot(step + 1, model)
+
+        callbacks = [TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], before_iteration)]
+        if trainer is not None and self.config.snapshot_every > 0:
+            last = trainer.config.max_num_iterations - 1
+            callbacks.append(
+                TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], after_training, iters=(last,))
+            )
+        return callbacks
+
+    def write_snapshot(self, step: int, model) -> Optional[Path]:
+        """Render every training-split view at `step` into `snapshots/step-NNNNNN/` (temp folder, then rename)."""
+        if self.run_dir is None:
+            return None
+        from PIL import Image
+
+        target = self.run_dir / "snapshots" / f"step-{step:06d}"
+        if target.exists():
+            return target
+        tmp = Path(tempfile.mkdtemp(prefix=".snapshot-", dir=target.parent if target.parent.exists() else self._mk(target.parent)))
+        for i in range(len(self.train_dataset)):
+            image = self.render_views(model, [i])[0]
+            array = (image.cpu().numpy() * 255 + 0.5).astype(np.uint8)
+            Image.fromarray(array).save(tmp / f"{Path(self.image_names[i]).stem}.png")
+        write_json_atomic(tmp / "views.json", {"step": step, "active": [self.image_names[i] for i in self.active]})
+        tmp.rename(target)
+        return target
+
+    @staticmethod
+    def _mk(path: Path) -> Path:
+        path.mkdir(parents=True, exist_ok=True)
+        return path
 
     @torch.no_grad()
     def render_views(self, model, indices: Sequence[int], short_side: Optional[int] = None) -> List[torch.Tensor]:
