@@ -19,7 +19,7 @@ import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Dict, List, Literal, Optional, Sequence, Type
+from typing import Any, Dict, List, Literal, Optional, Sequence, Tuple, Type
 
 import numpy as np
 import torch
@@ -58,10 +58,12 @@ class ActiveDatamanagerConfig(FullImageDatamanagerConfig):
     num_initial_views: int = 20
     """Training views active at step 0."""
     initial_views: Literal["even", "fps", "random"] = "even"
-    """How the initial views are chosen: evenly spaced along the capture (file-name order), farthest-point
-    sampling on camera centres, or uniformly at random (seeded)."""
+    """How the initial views are chosen: evenly spaced along the capture (file-name order); `fps`: the first
+    view, then farthest camera centres (FisherRF's start); or uniformly at random (seeded)."""
     select_every: int = 2000
     """A selection round runs at steps select_every, 2*select_every, ... (never at step 0)."""
+    select_at: Tuple[int, ...] = ()
+    """Explicit round steps (e.g. FisherRF's 400 900 1500 ...); when given, select-every is ignored."""
     views_per_round: int = 1
     """Views added per round (greedy batch selection when > 1)."""
     max_rounds: int = 7
@@ -80,6 +82,8 @@ class ActiveDatamanagerConfig(FullImageDatamanagerConfig):
     """Options of the `hpgs` selector (the paper's method)."""
     condorcet: CondorcetSelectorConfig = field(default_factory=CondorcetSelectorConfig)
     """Options of the `condorcet` selector (the paper's ablation)."""
+    eval_each_round: bool = False
+    """Measure test-view PSNR just before each round (recorded in selected_views.json; used by `hpgs bench`)."""
     snapshot_every: int = 0
     """If > 0, every this many steps (and at the last step) render every training-split view to
     `<run dir>/snapshots/step-NNNNNN/` (what `hpgs collect` labels). Test views are never rendered."""
@@ -130,7 +134,7 @@ class ActiveDatamanager(FullImageDatamanager):
         if self.config.initial_views == "random":
             return sorted(torch.randperm(n, generator=self.generator)[:k].tolist())
         centres = self.train_dataset.cameras.camera_to_worlds[:, :3, 3]
-        return sorted(farthest_point_order(centres, k, start=int(torch.randint(n, (1,), generator=self.generator))))
+        return sorted(farthest_point_order(centres, k, start=0))
 
     def sample_train_cameras(self) -> List[int]:
         """A shuffled pass over the active views (nerfstudio calls this whenever a pass is used up)."""
@@ -168,7 +172,10 @@ class ActiveDatamanager(FullImageDatamanager):
     def is_round_step(self, step: int) -> bool:
         """True when a selection round is due at `step`."""
         every = self.config.select_every
-        if step <= 0 or every <= 0 or step % every != 0:
+        if self.config.select_at:
+            if step not in self.config.select_at:
+                return False
+        elif step <= 0 or every <= 0 or step % every != 0:
             return False
         done = {h["step"] for h in self.history}
         return step not in done and len(self.history) < self.config.max_rounds and bool(self.candidates)
@@ -260,6 +267,7 @@ class ActiveDatamanager(FullImageDatamanager):
 
     def run_round(self, step: int, model) -> Selection:
         """Ask the selector for views, make them active, and log the round."""
+        test_psnr = self.test_psnr(model) if self.config.eval_each_round else None
         context = self.selection_context(step, model)
         if not context.candidates:
             raise SelectionError("no withheld views left to select from")
@@ -275,6 +283,7 @@ class ActiveDatamanager(FullImageDatamanager):
             "chosen_indices": [int(i) for i in selection.indices],
             "seconds": float(seconds),
             "num_active": len(self.active),
+            "test_psnr_before": test_psnr,
             "scores": {self.image_names[i]: float(s) for i, s in selection.scores.items()},
         }
         self.history.append(record)
@@ -288,6 +297,24 @@ class ActiveDatamanager(FullImageDatamanager):
         self._log_chosen_render(model, selection.indices[0], step)
         self.write_log()
         return selection
+
+    @torch.no_grad()
+    def test_psnr(self, model) -> float:
+        """Mean PSNR over the test views with the current splat (eval mode)."""
+        from hpgs_ns.metrics import psnr
+
+        was_training = model.training
+        model.eval()
+        try:
+            values = []
+            for camera, batch in self.fixed_indices_eval_dataloader:
+                rgb = model.get_outputs_for_camera(camera)["rgb"].clamp(0, 1)
+                gt = batch["image"].float()
+                gt = gt / 255.0 if batch["image"].dtype == torch.uint8 else gt
+                values.append(psnr(rgb.cpu(), gt[..., :3].cpu()))
+            return float(np.mean(values)) if values else float("nan")
+        finally:
+            model.train(was_training)
 
     def _log_chosen_render(self, model, index: int, step: int) -> None:
         try:
