@@ -16,6 +16,7 @@ COMMANDS = {
     "demo": "hpgs_ns.demo:Demo",
     "make-scene": "hpgs_ns.synthetic_scene:MakeScene",
     "collect": "hpgs_ns.collect:Collect",
+    "bench": "hpgs_ns.bench:Bench",
 }
 
 

@@ -199,9 +199,10 @@ class ActiveDatamanager(FullImageDatamanager):
             every = self.config.snapshot_every
             if model is not None and every > 0 and (step + 1) % every == 0:
                 self.write_snapshot(step + 1, model)
+            self.write_log()
 
         callbacks = [TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], before_iteration)]
-        if trainer is not None and self.config.snapshot_every > 0:
+        if trainer is not None:
             last = trainer.config.max_num_iterations - 1
             callbacks.append(
                 TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], after_training, iters=(last,))
@@ -336,6 +337,7 @@ class ActiveDatamanager(FullImageDatamanager):
             "active": [self.image_names[i] for i in self.active],
             "withheld": [self.image_names[i] for i in self.candidates],
             "test": [Path(p).name for p in self.eval_dataset.image_filenames],
+            "peak_gpu_memory_mb": torch.cuda.max_memory_allocated() / 2**20 if torch.cuda.is_available() else None,
         }
         return write_json_atomic(self.run_dir / "selected_views.json", payload)
 

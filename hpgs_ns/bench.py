@@ -1,0 +1,311 @@
+"""`hpgs bench`: run time against error for every selector, through the real `ns-train hpgs` pipeline.
+
+One run per (scene, protocol, selector, seed), plus two reference rows per (scene, protocol, seed):
+`initial` (no views added) and `all` (every training view). Each run writes
+`OUT/<scene>/<protocol>/<selector>/seed<k>.json`; runs whose JSON exists are skipped, so a killed sweep resumes.
+`hpgs bench --report-only` rebuilds the markdown table and the plots from whatever JSON is there.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shlex
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Dict, List, Literal, Optional, Sequence, Tuple
+
+from rich.console import Console
+from rich.table import Table
+
+from hpgs_ns.datamanager import write_json_atomic
+
+CONSOLE = Console(stderr=True)
+SELECTORS = ("random", "farthest", "fisher", "hpgs", "condorcet")
+REFERENCES = ("initial", "all")
+
+
+@dataclass(frozen=True)
+class Protocol:
+    """How many views to start from and when to add more."""
+
+    name: str
+    steps: int
+    initial_views: int
+    initial_mode: str
+    select_every: int = 0
+    select_at: Tuple[int, ...] = ()
+    max_rounds: int = 7
+
+
+def fisherrf_schedule(initial: int = 4, final: int = 20, per_view: int = 100) -> Tuple[int, ...]:
+    """FisherRF adds a view every |train| x 100 steps: 400, 900, 1500, ... up to `final` views."""
+    steps, t = [], 0
+    for n in range(initial, final):
+        t += n * per_view
+        steps.append(t)
+    return tuple(steps)
+
+
+PROTOCOLS = {
+    "hpgs": Protocol("hpgs", steps=15000, initial_views=20, initial_mode="even", select_every=2000, max_rounds=7),
+    "fisherrf": Protocol(
+        "fisherrf", steps=20000, initial_views=4, initial_mode="fps", select_at=fisherrf_schedule(), max_rounds=16
+    ),
+}
+
+
+def scaled(protocol: Protocol, scale: float) -> Protocol:
+    """The protocol with every step count multiplied by `scale` (short CPU runs keep the same shape)."""
+    if scale == 1.0:
+        return protocol
+    return Protocol(
+        protocol.name,
+        steps=max(int(protocol.steps * scale), 1),
+        initial_views=protocol.initial_views,
+        initial_mode=protocol.initial_mode,
+        select_every=max(int(protocol.select_every * scale), 1) if protocol.select_every else 0,
+        select_at=tuple(max(int(s * scale), 1) for s in protocol.select_at),
+        max_rounds=protocol.max_rounds,
+    )
+
+
+@dataclass
+class Bench:
+    """Benchmark selectors (test PSNR/SSIM/LPIPS, wall and selection time, memory) on scenes."""
+
+    scenes: List[Path] = field(default_factory=list)
+    """Scene folders (Mip-NeRF 360 layout)."""
+    out: Path = Path("benchmarks/results/bench")
+    """Results folder (one JSON per run; table and plots beside)."""
+    selectors: List[str] = field(default_factory=lambda: list(SELECTORS))
+    """Selectors to run."""
+    seeds: List[int] = field(default_factory=lambda: [0, 1, 2])
+    """Seeds: initial random views, selector randomness and torch."""
+    protocols: List[Literal["hpgs", "fisherrf"]] = field(default_factory=lambda: ["hpgs"])
+    """View-addition protocols."""
+    references: bool = True
+    """Also run the `initial` (no additions) and `all` (every training view) rows."""
+    step_scale: float = 1.0
+    """Multiply every step count (e.g. 0.01 for a CPU smoke run)."""
+    initial_views: Optional[int] = None
+    """Override the protocol's number of initial views (small scenes)."""
+    max_runs: Optional[int] = None
+    """Stop after this many new runs (fit a sweep into a time budget; re-run to continue)."""
+    downscale_factor: Optional[int] = None
+    """Dataparser downscale factor (e.g. 2 for the shared bonsai-device images_2)."""
+    rasterizer: Literal["auto", "gsplat", "cpu"] = "auto"
+    """Rasterizer for all runs."""
+    extra_args: str = ""
+    """Extra `ns-train hpgs` arguments for every run (quoted)."""
+    report_only: bool = False
+    """Only rebuild the table and plots from existing JSON."""
+
+    def main(self) -> None:
+        if not self.report_only:
+            self.run_all()
+        rows = load_results(self.out)
+        if not rows:
+            raise SystemExit(f"hpgs bench: no results under {self.out}")
+        table = markdown_table(rows)
+        (self.out / "table.md").write_text(table)
+        print(table)
+        for path in make_plots(rows, self.out):
+            CONSOLE.print(f"plot: {path}")
+
+    def jobs(self) -> List[Tuple[Path, Protocol, str, int]]:
+        jobs = []
+        for scene in self.scenes:
+            for pname in self.protocols:
+                protocol = scaled(PROTOCOLS[pname], self.step_scale)
+                for seed in self.seeds:
+                    names = list(self.selectors) + (list(REFERENCES) if self.references else [])
+                    for name in names:
+                        jobs.append((scene, protocol, name, seed))
+        return jobs
+
+    def run_all(self) -> None:
+        for scene in self.scenes:
+            if not (scene / "sparse" / "0").is_dir():
+                raise SystemExit(f"hpgs bench: {scene} is not a scene folder (no sparse/0); pass --scenes PATH")
+        done = 0
+        for scene, protocol, name, seed in self.jobs():
+            path = result_path(self.out, scene, protocol.name, name, seed)
+            if path.exists():
+                continue
+            if self.max_runs is not None and done >= self.max_runs:
+                CONSOLE.print(f"[yellow]--max-runs {self.max_runs} reached; run again to continue")
+                return
+            CONSOLE.print(f"[bold]{scene.name} / {protocol.name} / {name} / seed {seed}[/bold]")
+            result = run_one(self, scene, protocol, name, seed)
+            write_json_atomic(path, result)
+            done += 1
+            CONSOLE.print(
+                f"  PSNR {result['test']['psnr']:.2f}  wall {result['wall_seconds']:.0f} s  "
+                f"selection {result['selection_seconds']:.1f} s"
+            )
+
+
+def result_path(out: Path, scene: Path, protocol: str, name: str, seed: int) -> Path:
+    return out / scene.name / protocol / name / f"seed{seed}.json"
+
+
+def train_args(bench: Bench, scene: Path, protocol: Protocol, name: str, seed: int, run_root: Path) -> List[str]:
+    initial = bench.initial_views or protocol.initial_views
+    selector, rounds = name, protocol.max_rounds
+    if name == "initial":
+        selector, rounds = "random", 0
+    elif name == "all":
+        selector, rounds, initial = "random", 0, 100000
+    args = [
+        sys.executable, "-m", "nerfstudio.scripts.train", "hpgs",
+        "--data", str(scene), "--output-dir", str(run_root), "--experiment-name", scene.name,
+        "--timestamp", f"{protocol.name}-{name}-seed{seed}", "--vis", "tensorboard",
+        "--machine.seed", str(seed),
+        "--max-num-iterations", str(protocol.steps), "--steps-per-save", str(protocol.steps),
+        "--steps-per-eval-all-images", str(10 * protocol.steps),
+        "--steps-per-eval-image", str(10 * protocol.steps),
+        "--pipeline.datamanager.num-initial-views", str(initial),
+        "--pipeline.datamanager.initial-views", protocol.initial_mode,
+        "--pipeline.datamanager.max-rounds", str(rounds),
+        "--pipeline.datamanager.selector", selector,
+        "--pipeline.datamanager.seed", str(seed),
+        "--pipeline.datamanager.eval-each-round", "True",
+        "--pipeline.model.rasterizer", bench.rasterizer,
+    ]
+    if protocol.select_at:
+        args += ["--pipeline.datamanager.select-at", *map(str, protocol.select_at)]
+    else:
+        args += ["--pipeline.datamanager.select-every", str(protocol.select_every)]
+    if bench.downscale_factor is not None:
+        args += ["--pipeline.datamanager.dataparser.downscale-factor", str(bench.downscale_factor)]
+    return args + shlex.split(bench.extra_args)
+
+
+def run_one(bench: Bench, scene: Path, protocol: Protocol, name: str, seed: int) -> dict:
+    run_root = bench.out / "_runs"
+    cmd = train_args(bench, scene, protocol, name, seed, run_root)
+    start = time.perf_counter()
+    log_path = run_root / f"{scene.name}-{protocol.name}-{name}-seed{seed}.log"
+    log_path.parent.mkdir(parents=True, exist_ok=True)
+    with open(log_path, "w") as log:
+        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT)
+        # wait4 gives this child's own peak RSS (getrusage(RUSAGE_CHILDREN) would be the max over all runs).
+        _, status, usage = os.wait4(proc.pid, 0)
+    wall = time.perf_counter() - start
+    if os.waitstatus_to_exitcode(status) != 0:
+        tail = "\n".join(log_path.read_text().strip().splitlines()[-15:])
+        raise SystemExit(f"hpgs bench: training failed ({shlex.join(cmd)}):\n{tail}")
+    run_dir = run_root / scene.name / "hpgs" / f"{protocol.name}-{name}-seed{seed}"
+    metrics = evaluate_run(run_dir)
+    selected = json.loads((run_dir / "selected_views.json").read_text())
+    rounds = selected["rounds"]
+    return {
+        "scene": scene.name,
+        "protocol": protocol.name,
+        "selector": name,
+        "seed": seed,
+        "steps": protocol.steps,
+        "test": metrics["results"],
+        "num_test_views": len(selected["test"]),
+        "num_views_final": len(selected["active"]),
+        "psnr_per_round": [
+            {"step": r["step"], "num_views_before": r["num_active"] - len(r["chosen"]), "test_psnr": r["test_psnr_before"]}
+            for r in rounds
+        ],
+        "wall_seconds": wall,
+        "selection_seconds": float(sum(r["seconds"] for r in rounds)),
+        "selection_seconds_per_round": [r["seconds"] for r in rounds],
+        "peak_memory_mb": {"host_rss": usage.ru_maxrss / 1024, "gpu_allocated": selected.get("peak_gpu_memory_mb")},
+        "initial_views": selected["initial"],
+        "chosen_views": [v for r in rounds for v in r["chosen"]],
+        "command": shlex.join(cmd),
+        "device": device_name(),
+    }
+
+
+def evaluate_run(run_dir: Path) -> dict:
+    """Stock `ns-eval` on the run's final checkpoint: mean test-view PSNR/SSIM/LPIPS."""
+    out = run_dir / "eval.json"
+    subprocess.run(
+        [sys.executable, "-m", "nerfstudio.scripts.eval", "--load-config", str(run_dir / "config.yml"), "--output-path", str(out)],
+        check=True, capture_output=True,
+    )
+    return json.loads(out.read_text())
+
+
+def device_name() -> str:
+    import torch
+
+    return torch.cuda.get_device_name(0) if torch.cuda.is_available() else f"cpu x{os.cpu_count()}"
+
+
+def load_results(out: Path) -> List[dict]:
+    return [json.loads(p.read_text()) for p in sorted(out.glob("*/*/*/seed*.json"))]
+
+
+def _mean_std(values: Sequence[float]) -> Tuple[float, float]:
+    n = len(values)
+    mean = sum(values) / n
+    std = math.sqrt(sum((v - mean) ** 2 for v in values) / (n - 1)) if n > 1 else 0.0
+    return mean, std
+
+
+def markdown_table(rows: List[dict]) -> str:
+    """Mean +- std over seeds per (scene, protocol, selector)."""
+    groups: Dict[Tuple[str, str, str], List[dict]] = {}
+    for r in rows:
+        groups.setdefault((r["scene"], r["protocol"], r["selector"]), []).append(r)
+    lines = [
+        "| scene | protocol | selector | seeds | views | PSNR | SSIM | LPIPS | wall (s) | selection (s) |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    order = {name: i for i, name in enumerate(list(SELECTORS) + list(REFERENCES))}
+    for (scene, protocol, sel), group in sorted(groups.items(), key=lambda kv: (kv[0][0], kv[0][1], order.get(kv[0][2], 99))):
+        cells = []
+        for key in ("psnr", "ssim", "lpips"):
+            m, s = _mean_std([g["test"][key] for g in group])
+            cells.append(f"{m:.3f} ± {s:.3f}" if key != "psnr" else f"{m:.2f} ± {s:.2f}")
+        wall, _ = _mean_std([g["wall_seconds"] for g in group])
+        selt, _ = _mean_std([g["selection_seconds"] for g in group])
+        views = group[0]["num_views_final"]
+        lines.append(f"| {scene} | {protocol} | {sel} | {len(group)} | {views} | {' | '.join(cells)} | {wall:.0f} | {selt:.1f} |")
+    return "\n".join(lines) + "\n"
+
+
+def make_plots(rows: List[dict], out: Path) -> List[Path]:
+    """PSNR vs wall time per selector, PSNR vs number of views, per (scene, protocol)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    paths = []
+    keys = sorted({(r["scene"], r["protocol"]) for r in rows})
+    for scene, protocol in keys:
+        group = [r for r in rows if r["scene"] == scene and r["protocol"] == protocol]
+        fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4.2))
+        for sel in sorted({r["selector"] for r in group}):
+            rs = [r for r in group if r["selector"] == sel]
+            ax1.scatter([r["wall_seconds"] for r in rs], [r["test"]["psnr"] for r in rs], label=sel, s=30)
+            if sel in REFERENCES:
+                continue
+            for k, r in enumerate(rs):
+                pts = [(p["num_views_before"], p["test_psnr"]) for p in r["psnr_per_round"] if p["test_psnr"] is not None]
+                pts.append((r["num_views_final"], r["test"]["psnr"]))
+                ax2.plot(*zip(*pts), marker="o", ms=3, color=f"C{sorted({x['selector'] for x in group}).index(sel)}",
+                         label=sel if k == 0 else None, alpha=0.8)
+        ax1.set(xlabel="wall time (s)", ylabel="test PSNR (dB)", title=f"{scene} / {protocol}: PSNR vs run time")
+        ax2.set(xlabel="training views", ylabel="test PSNR (dB)", title="PSNR as views are added")
+        ax1.legend(fontsize=8)
+        ax2.legend(fontsize=8)
+        fig.tight_layout()
+        path = out / f"{scene}-{protocol}.png"
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+        paths.append(path)
+    return paths
