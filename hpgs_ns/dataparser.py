@@ -57,13 +57,20 @@ class MipNerf360DataParser(ColmapDataParser):
             )
         if not ((model / "images.bin").exists() or (model / "images.txt").exists()):
             raise SceneDataError(f"no camera poses: {model}/images.bin (or .txt) is missing; run COLMAP first")
-        if not (data / self.config.images_path).is_dir():
-            raise SceneDataError(f"image folder {data / self.config.images_path} does not exist; set --images-path")
+        if not self._image_folder().is_dir():
+            raise SceneDataError(f"image folder {self._image_folder()} does not exist; set --images-path or --downscale-factor")
+
+    def _image_folder(self) -> Path:
+        """Where the photos are read from: `images/`, or `images_N/` when a downscale factor N is given."""
+        folder = Path(self.config.data) / self.config.images_path
+        factor = self.config.downscale_factor
+        return folder.parent / f"{folder.name}_{factor}" if factor and factor > 1 else folder
 
     def _get_all_images_and_cameras(self, recon_dir: Path):
         out = super()._get_all_images_and_cameras(recon_dir)
         out["frames"] = sorted(out["frames"], key=lambda frame: Path(frame["file_path"]).name)
-        missing = [f["file_path"] for f in out["frames"] if not Path(f["file_path"]).exists()]
+        folder = self._image_folder()
+        missing = [str(folder / Path(f["file_path"]).name) for f in out["frames"] if not (folder / Path(f["file_path"]).name).exists()]
         if missing:
             raise SceneDataError(
                 f"{len(missing)} images named in the COLMAP model are missing, e.g. {missing[0]}; restore them or re-run COLMAP"
