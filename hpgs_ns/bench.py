@@ -220,6 +220,7 @@ def run_one(bench: Bench, scene: Path, protocol: Protocol, name: str, seed: int)
         "wall_seconds": wall,
         "selection_seconds": float(sum(r["seconds"] for r in rounds)),
         "selection_seconds_per_round": [r["seconds"] for r in rounds],
+        **train_timing(run_dir),
         "peak_memory_mb": {"host_rss": usage.ru_maxrss / 1024, "gpu_allocated": selected.get("peak_gpu_memory_mb")},
         "initial_views": selected["initial"],
         "chosen_views": [v for r in rounds for v in r["chosen"]],
@@ -236,6 +237,31 @@ def evaluate_run(run_dir: Path) -> dict:
         check=True, capture_output=True,
     )
     return json.loads(out.read_text())
+
+
+def train_timing(run_dir: Path) -> dict:
+    """Per-iteration training time from the run's tensorboard events.
+
+    nerfstudio logs a running mean of "Train Iter (time)" every few steps; rounds are single slow iterations,
+    so the median of the logged means is the typical per-iteration time, selection excluded."""
+    try:
+        from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+    except ImportError:
+        return {}
+    times, totals = [], []
+    for events in run_dir.glob("events.out.tfevents.*"):
+        acc = EventAccumulator(str(events), size_guidance={"scalars": 0})
+        acc.Reload()
+        tags = acc.Tags().get("scalars", [])
+        if "Train Iter (time)" in tags:
+            times += [e.value for e in acc.Scalars("Train Iter (time)")]
+        if "Train Total (time)" in tags:
+            totals += [e.value for e in acc.Scalars("Train Total (time)")]
+    times.sort()
+    return {
+        "train_iter_ms_median": 1000 * times[len(times) // 2] if times else None,
+        "train_total_seconds": max(totals) if totals else None,
+    }
 
 
 def device_name() -> str:
