@@ -17,6 +17,8 @@ COMMANDS = {
     "make-scene": "hpgs_ns.synthetic_scene:MakeScene",
     "collect": "hpgs_ns.collect:Collect",
     "bench": "hpgs_ns.bench:Bench",
+    "train-pref": "hpgs_ns.preference.train:TrainPref",
+    "eval-pref": "hpgs_ns.preference.evaluate:EvalPref",
 }
 
 

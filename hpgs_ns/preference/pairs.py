@@ -1,0 +1,155 @@
+"""Preference-pair CSVs in the HP-GS format, images, and image-disjoint splits.
+
+CSV columns: `Image_1,Image_2,Human Preference[,Skipped]`. Image names are relative to the CSV's folder.
+`Human Preference` 1 = Image_1 is the worse (more poorly reconstructed) render, 0 = Image_2 is, empty = not
+labelled yet. `Skipped` 1 = the labeller skipped the pair. Only labelled, unskipped pairs train or score.
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+import random
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Dict, Iterable, List, Optional, Sequence, Set, Tuple
+
+import numpy as np
+import torch
+
+COLUMNS = ("Image_1", "Image_2", "Human Preference")
+SKIPPED = "Skipped"
+
+
+class PairsError(ValueError):
+    """A pairs CSV or one of its images is unusable; the one-line message names the file and the fix."""
+
+
+@dataclass(frozen=True)
+class Pair:
+    """One row of a pairs CSV, with image paths resolved against the CSV's folder."""
+
+    image_1: Path
+    image_2: Path
+    label: Optional[int]
+    """1 = image_1 is worse, 0 = image_2 is worse, None = unlabelled."""
+    skipped: bool = False
+
+    @property
+    def usable(self) -> bool:
+        """Labelled and not skipped: the pairs that train and score."""
+        return self.label is not None and not self.skipped
+
+
+def _flag(value: Optional[str], csv_path: Path, line: int, column: str) -> Optional[int]:
+    value = (value or "").strip()
+    if value == "":
+        return None
+    try:
+        number = float(value)
+    except ValueError:
+        number = None
+    if number not in (0.0, 1.0):
+        raise PairsError(f"{csv_path}:{line}: {column} must be 1, 0 or empty, got {value!r}; fix that row")
+    return int(number)
+
+
+def read_pairs(csv_path: Path) -> List[Pair]:
+    """Every row of a pairs CSV (labelled or not); PairsError on a malformed file."""
+    csv_path = Path(csv_path)
+    if not csv_path.is_file():
+        raise PairsError(f"{csv_path}: pairs CSV not found; pass an existing file (columns {','.join(COLUMNS)})")
+    with open(csv_path, newline="", encoding="utf-8-sig") as f:
+        reader = csv.DictReader(f)
+        header = [h.strip() for h in (reader.fieldnames or [])]
+        missing = [c for c in COLUMNS if c not in header]
+        if missing:
+            raise PairsError(f"{csv_path}: missing column(s) {', '.join(missing)}; the header must be "
+                             f"{','.join(COLUMNS)}[,{SKIPPED}]")
+        reader.fieldnames = header
+        pairs = []
+        for line, row in enumerate(reader, start=2):
+            if None in row:  # more cells than header fields
+                raise PairsError(f"{csv_path}:{line}: too many cells; fix that row to match the header")
+            names = [(row.get(c) or "").strip() for c in COLUMNS[:2]]
+            if not all(names):
+                raise PairsError(f"{csv_path}:{line}: empty image name; every row needs Image_1 and Image_2")
+            label = _flag(row.get(COLUMNS[2]), csv_path, line, COLUMNS[2])
+            skipped = _flag(row.get(SKIPPED), csv_path, line, SKIPPED) == 1
+            pairs.append(Pair(csv_path.parent / names[0], csv_path.parent / names[1], label, skipped))
+    return pairs
+
+
+def read_usable_pairs(csv_paths: Iterable[Path], check_images: bool = True) -> List[Pair]:
+    """Labelled, unskipped pairs of all CSVs; PairsError if an image they name is missing."""
+    pairs = [p for path in csv_paths for p in read_pairs(path) if p.usable]
+    if check_images:
+        for pair in pairs:
+            for image in (pair.image_1, pair.image_2):
+                if not image.is_file():
+                    raise PairsError(f"{image}: image named in a pairs CSV is missing; names are relative to the "
+                                     "CSV's folder: restore the file or remove its rows")
+    return pairs
+
+
+def write_rows_atomic(csv_path: Path, fieldnames: Sequence[str], rows: Sequence[Dict[str, object]]) -> None:
+    """Write a CSV to a temporary file in the same folder, fsync, then rename over `csv_path`."""
+    csv_path = Path(csv_path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{csv_path.name}.", suffix=".tmp", dir=csv_path.parent)
+    try:
+        with os.fdopen(fd, "w", newline="", encoding="utf-8") as f:
+            writer = csv.DictWriter(f, fieldnames=list(fieldnames), extrasaction="ignore")
+            writer.writeheader()
+            writer.writerows(rows)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, csv_path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def load_image(path: Path) -> torch.Tensor:
+    """An image file as [3, H, W] float in [0, 1]; PairsError if missing or unreadable."""
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as im:
+            array = np.asarray(im.convert("RGB"), dtype=np.float32) / 255.0
+    except FileNotFoundError:
+        raise PairsError(f"{path}: image not found; restore it or remove the pairs that name it") from None
+    except (UnidentifiedImageError, OSError) as err:
+        raise PairsError(f"{path}: not a readable image ({type(err).__name__}); replace it or remove its pairs") from None
+    return torch.from_numpy(array).permute(2, 0, 1).contiguous()
+
+
+def images_of(pairs: Iterable[Pair]) -> List[Path]:
+    """Distinct images of `pairs`, in first-seen order."""
+    return list(dict.fromkeys(p for pair in pairs for p in (pair.image_1, pair.image_2)))
+
+
+def pairs_within(pairs: Iterable[Pair], images: Set[Path]) -> List[Pair]:
+    """Pairs whose two images are both in `images`."""
+    return [p for p in pairs if p.image_1 in images and p.image_2 in images]
+
+
+def image_folds(images: Sequence[Path], k: int, seed: int = 0) -> List[Set[Path]]:
+    """Split images into k disjoint, near-equal random groups (every image in exactly one)."""
+    order = list(images)
+    random.Random(seed).shuffle(order)
+    return [set(order[i::k]) for i in range(k)]
+
+
+def image_disjoint_split(pairs: Sequence[Pair], test_fraction: float, seed: int = 0) -> Tuple[List[Pair], List[Pair]]:
+    """(train, test) pairs with no image on both sides: a random `test_fraction` of the images is held out;
+    test pairs have both images held out, train pairs neither; pairs straddling the two are dropped."""
+    images = images_of(pairs)
+    if test_fraction <= 0 or len(images) < 4:
+        return list(pairs), []
+    order = list(images)
+    random.Random(seed).shuffle(order)
+    n_test = min(len(images) - 2, max(2, round(test_fraction * len(images))))
+    held_out = set(order[:n_test])
+    train = pairs_within(pairs, set(order[n_test:]))
+    return train, pairs_within(pairs, held_out)
