@@ -19,6 +19,7 @@ COMMANDS = {
     "bench": "hpgs_ns.bench:Bench",
     "train-pref": "hpgs_ns.preference.train:TrainPref",
     "eval-pref": "hpgs_ns.preference.evaluate:EvalPref",
+    "label": "hpgs_ns.preference.label_server:Label",
 }
 
 

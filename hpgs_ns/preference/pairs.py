@@ -42,7 +42,8 @@ class Pair:
         return self.label is not None and not self.skipped
 
 
-def _flag(value: Optional[str], csv_path: Path, line: int, column: str) -> Optional[int]:
+def parse_flag(value: Optional[str], csv_path: Path, line: int, column: str) -> Optional[int]:
+    """A 0/1/empty cell -> 0, 1 or None; PairsError naming the file and line otherwise."""
     value = (value or "").strip()
     if value == "":
         return None
@@ -75,8 +76,8 @@ def read_pairs(csv_path: Path) -> List[Pair]:
             names = [(row.get(c) or "").strip() for c in COLUMNS[:2]]
             if not all(names):
                 raise PairsError(f"{csv_path}:{line}: empty image name; every row needs Image_1 and Image_2")
-            label = _flag(row.get(COLUMNS[2]), csv_path, line, COLUMNS[2])
-            skipped = _flag(row.get(SKIPPED), csv_path, line, SKIPPED) == 1
+            label = parse_flag(row.get(COLUMNS[2]), csv_path, line, COLUMNS[2])
+            skipped = parse_flag(row.get(SKIPPED), csv_path, line, SKIPPED) == 1
             pairs.append(Pair(csv_path.parent / names[0], csv_path.parent / names[1], label, skipped))
     return pairs
 
