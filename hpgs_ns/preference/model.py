@@ -175,6 +175,7 @@ class PreferenceModel(nn.Module):
         nn.init.zeros_(self.head.bias)
         self.meta: Dict[str, Any] = {}
         """Provenance written into the checkpoint (training data, held-out accuracy, options)."""
+        self.eval()  # inference by default; training switches modes explicitly
 
     @property
     def feature_dim(self) -> int:

@@ -134,7 +134,7 @@ def train_minibatch(model: PreferenceModel, pairs: Sequence[Pair], finetune: boo
             optimiser.zero_grad()
             loss.backward()
             optimiser.step()
-            total += float(loss) * len(chunk)
+            total += float(loss.detach()) * len(chunk)
         history.append(total / max(1, len(pairs)))
     model.eval().requires_grad_(False)
     return history
