@@ -36,7 +36,8 @@ sys.path.insert(0, str(REPO))
 from hpgs_ns.preference.evaluate import index_pairs, pair_accuracy_from_scores, raw_features_of  # noqa: E402
 from hpgs_ns.preference.model import BackboneUnavailable, PreferenceModel  # noqa: E402
 from hpgs_ns.preference.pairs import image_folds, load_image, read_usable_pairs  # noqa: E402
-from hpgs_ns.preference.train import fit_head  # noqa: E402
+from hpgs_ns.offline_weights import cached_resnet34_weights  # noqa: E402
+from hpgs_ns.preference.train import TrainPref, fit_head  # noqa: E402
 
 
 def laplacian_variance(image: torch.Tensor) -> float:
@@ -53,7 +54,11 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=4)
     parser.add_argument("--input-size", type=int, default=224)
     parser.add_argument("--l2", type=float, default=0.1)
-    parser.add_argument("--backbones", nargs="+", default=["alexnet", "vgg16", "efficientnet-lite0", "resnet34"])
+    parser.add_argument("--backbones", nargs="*", default=["alexnet", "vgg16", "efficientnet-lite0", "resnet34"])
+    parser.add_argument("--finetune", nargs="*", default=[], metavar="BACKBONE",
+                        help="also fine-tune these backbones per fold (minibatch, augmented; slow on a CPU)")
+    parser.add_argument("--finetune-epochs", type=int, default=3)
+    parser.add_argument("--finetune-repeats", type=int, default=1)
     parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "pref_garden_cv.json")
     args = parser.parse_args()
 
@@ -76,10 +81,12 @@ def main() -> None:
             train = ~inside[index[:, 0]] & ~inside[index[:, 1]]
             splits.append((repeat, train, test))
 
-    def cv(score_fn) -> Dict[str, float]:
+    def cv(score_fn, repeats: int = args.repeats) -> Dict[str, float]:
         """Accuracy pooled over the folds of each repeat; score_fn(train_mask) -> per-image scores [N]."""
         per_repeat: Dict[int, List[float]] = {}
         for repeat, train, test in splits:
+            if repeat >= repeats:
+                continue
             scores = score_fn(train)
             right = pair_accuracy_from_scores(scores, index[test], labels[test]) * int(test.sum())
             per_repeat.setdefault(repeat, []).append((right, int(test.sum())))
@@ -128,6 +135,22 @@ def main() -> None:
         rows[f"{name} (frozen)"]["feature_dim"] = model.feature_dim
         timings[name] = round(time.time() - t0, 1)
 
+    for name in args.finetune:
+        t0 = time.time()
+        pretrained = "none" if name == "resnet34" and cached_resnet34_weights() is None else "imagenet"
+        recipe = TrainPref(pairs=(), out=Path("unused"), backbone=name, pretrained=pretrained, finetune=True,
+                           epochs=args.finetune_epochs, input_size=args.input_size, l2=args.l2)
+
+        def finetuned(train: torch.Tensor) -> torch.Tensor:
+            model, _, _ = recipe.fit([p for p, t in zip(pairs, train.tolist()) if t])
+            with torch.no_grad():
+                return model.score_features(model.standardise(raw_features_of(model, images, progress=False)))
+
+        key = f"{name} (fine-tuned, {args.finetune_epochs} epochs{', from scratch' if pretrained == 'none' else ''})"
+        rows[key] = cv(finetuned, repeats=args.finetune_repeats)
+        timings[key] = round(time.time() - t0, 1)
+        print(f"{key}: {rows[key]['accuracy']:.1%}", file=sys.stderr)
+
     width = max(map(len, rows))
     print(f"\nHP-GS garden labels: {len(pairs)} pairs, {len(images)} images; grouped {args.folds}-fold over images "
           f"(test pairs: both images held out), {args.repeats} repeats")
@@ -143,7 +166,8 @@ def main() -> None:
         "data": str(data), "pairs": len(pairs), "images": len(images),
         "protocol": {"scheme": "grouped k-fold over images; test pairs have both images held out, train pairs "
                                "neither; every image held out once per repeat",
-                     "folds": args.folds, "repeats": args.repeats, "input_size": args.input_size, "l2": args.l2},
+                     "folds": args.folds, "repeats": args.repeats, "input_size": args.input_size, "l2": args.l2,
+                     "finetune_epochs": args.finetune_epochs, "finetune_repeats": args.finetune_repeats},
         "rows": rows, "ceiling_all_pairs": all_pairs_ceiling, "seconds": timings,
         "torch": torch.__version__, "machine": platform.machine(), "threads": torch.get_num_threads(),
     }

@@ -56,6 +56,12 @@ def parse_flag(value: Optional[str], csv_path: Path, line: int, column: str) -> 
     return int(number)
 
 
+def _image_path(csv_path: Path, name: str) -> Path:
+    """An image name from a CSV as an absolute, normalised path (symlinks kept), so the same file named from
+    two CSVs is one image for the image-disjoint split."""
+    return Path(os.path.normpath(os.path.abspath(csv_path.parent / name)))
+
+
 def read_pairs(csv_path: Path) -> List[Pair]:
     """Every row of a pairs CSV (labelled or not); PairsError on a malformed file."""
     csv_path = Path(csv_path)
@@ -78,7 +84,7 @@ def read_pairs(csv_path: Path) -> List[Pair]:
                 raise PairsError(f"{csv_path}:{line}: empty image name; every row needs Image_1 and Image_2")
             label = parse_flag(row.get(COLUMNS[2]), csv_path, line, COLUMNS[2])
             skipped = parse_flag(row.get(SKIPPED), csv_path, line, SKIPPED) == 1
-            pairs.append(Pair(csv_path.parent / names[0], csv_path.parent / names[1], label, skipped))
+            pairs.append(Pair(_image_path(csv_path, names[0]), _image_path(csv_path, names[1]), label, skipped))
     return pairs
 
 
@@ -106,9 +112,24 @@ def write_rows_atomic(csv_path: Path, fieldnames: Sequence[str], rows: Sequence[
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, csv_path)
+        _fsync_dir(csv_path.parent)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def _fsync_dir(directory: Path) -> None:
+    """Make a rename durable (POSIX); a no-op where directories cannot be opened."""
+    try:
+        fd = os.open(directory, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
 
 
 def load_image(path: Path) -> torch.Tensor:

@@ -11,6 +11,7 @@ A random fraction of the *images* is held out: test pairs have both images held 
 
 from __future__ import annotations
 
+import hashlib
 import sys
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -25,7 +26,7 @@ from typing_extensions import Annotated
 from hpgs_ns.offline_weights import MissingWeightsError
 from hpgs_ns.preference.evaluate import evaluate_pairs, index_pairs, raw_features_of
 from hpgs_ns.preference.model import BackboneUnavailable, PreferenceModel, bt_loss
-from hpgs_ns.preference.pairs import Pair, PairsError, image_disjoint_split, load_image, read_usable_pairs
+from hpgs_ns.preference.pairs import Pair, PairsError, image_disjoint_split, images_of, load_image, read_usable_pairs
 
 CONSOLE = Console(stderr=True)
 
@@ -177,11 +178,29 @@ class TrainPref:
     device: str = "cpu"
     """Torch device."""
 
-    def run(self) -> PreferenceModel:
-        """Train and return the model (with `meta` filled); `main` also saves it."""
+    @property
+    def trains_backbone(self) -> bool:
+        return self.finetune or self.pretrained == "none"
+
+    def fit(self, train: Sequence[Pair]) -> Tuple[PreferenceModel, float, List[float]]:
+        """Train a fresh model on `train` pairs: head fit on cached features, then minibatch epochs if the
+        backbone trains or augmentation is on. Returns (model, head-fit loss, epoch losses)."""
         torch.manual_seed(self.seed)
-        finetune = self.finetune or self.pretrained == "none"
-        augment = finetune if self.augment is None else self.augment
+        augment = self.trains_backbone if self.augment is None else self.augment
+        model = PreferenceModel(self.backbone, self.pretrained == "imagenet", self.input_size).to(self.device)
+        images, index, labels = index_pairs(train)
+        raw = raw_features_of(model, images, self.batch_size)
+        loss = fit_head(model, raw, index, labels, self.l2)
+        history: List[float] = []
+        if self.trains_backbone or augment:
+            history = train_minibatch(model, train, self.trains_backbone, augment, self.epochs, self.batch_size,
+                                      self.lr, self.backbone_lr, self.l2, self.seed)
+        model.meta = {"backbone_trained": self.trains_backbone}
+        return model, loss, history
+
+    def run(self) -> PreferenceModel:
+        """Split, train and return the model (with `meta` filled); `main` also saves it."""
+        finetune = self.trains_backbone
         pairs = read_usable_pairs(self.pairs)
         if len(pairs) < 2:
             raise PairsError(f"{', '.join(map(str, self.pairs))}: {len(pairs)} labelled pairs; label more with "
@@ -189,23 +208,17 @@ class TrainPref:
         train, test = image_disjoint_split(pairs, self.test_fraction, self.seed)
         if not train:
             raise PairsError("no training pairs left after holding out test images; lower --test-fraction")
-        model = PreferenceModel(self.backbone, self.pretrained == "imagenet", self.input_size).to(self.device)
-        model.eval()
-        images, index, labels = index_pairs(train)
+        images = images_of(train)
         print(f"train-pref: {len(train)} training pairs over {len(images)} images, {len(test)} held-out "
-                      f"pairs; backbone {self.backbone} ({'trained' if finetune else 'frozen'})", file=sys.stderr)
-        raw = raw_features_of(model, images, self.batch_size)
-        loss = fit_head(model, raw, index, labels, self.l2)
-        history = []
-        if finetune or augment:
-            history = train_minibatch(model, train, finetune, augment, self.epochs, self.batch_size, self.lr,
-                                      self.backbone_lr, self.l2, self.seed)
+              f"pairs; backbone {self.backbone} ({'trained' if finetune else 'frozen'})", file=sys.stderr)
+        model, loss, history = self.fit(train)
         train_acc = evaluate_pairs(model, train, self.batch_size)["accuracy"]
         held = evaluate_pairs(model, test, self.batch_size) if test else {"accuracy": None, "pairs": 0, "images": 0}
         options = {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(self).items() if k not in ("pairs", "out")}
         model.meta = {
-            "training_data": {"pairs_csv": [str(Path(p).resolve()) for p in self.pairs], "train_pairs": len(train),
-                              "train_images": len(images)},
+            "training_data": {"pairs_csv": [str(Path(p).resolve()) for p in self.pairs],
+                              "pairs_csv_sha256": [hashlib.sha256(Path(p).read_bytes()).hexdigest() for p in self.pairs],
+                              "usable_pairs": len(pairs), "train_pairs": len(train), "train_images": len(images)},
             "heldout": {"accuracy": held["accuracy"], "pairs": held["pairs"], "images": held["images"],
                         "split": f"image-disjoint, {self.test_fraction:g} of images, seed {self.seed}"},
             "train_accuracy": train_acc,
