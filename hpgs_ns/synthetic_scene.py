@@ -135,6 +135,9 @@ class Texture:
     """Pattern period (metres)."""
     grain: float = 0.15
     """Amplitude of the fine multiplicative noise (gives every surface texture to fit)."""
+    grain_cell: float = 0.15
+    """Period of the fine noise (metres): kept near a few pixels at the default resolution, not below a pixel,
+    so the images do not alias."""
     seed: int = 0
 
     def albedo(self, uv: np.ndarray) -> np.ndarray:
@@ -152,7 +155,7 @@ class Texture:
             w = np.zeros_like(u)
         a, b = np.asarray(self.color_a), np.asarray(self.color_b)
         base = a[None] * (1 - w[:, None]) + b[None] * w[:, None]
-        fine = value_noise(uv[:, 0] / 0.09, uv[:, 1] / 0.09, self.seed + 7919) - 0.5
+        fine = value_noise(uv[:, 0] / self.grain_cell, uv[:, 1] / self.grain_cell, self.seed + 7919) - 0.5
         return np.clip(base * (1 + self.grain * 2 * fine[:, None]), 0, 1)
 
 
@@ -427,13 +430,13 @@ def _surroundings(rng: np.random.Generator) -> List[Primitive]:
     """Ground disc and backdrop shared by all layouts: large, textured, fill every view."""
     ground = Disc(
         "ground",
-        Texture("checker", (0.55, 0.52, 0.47), (0.80, 0.78, 0.72), cell=0.5, grain=0.25, seed=int(rng.integers(2**31))),
+        Texture("checker", (0.55, 0.52, 0.47), (0.80, 0.78, 0.72), cell=0.5, grain=0.25, grain_cell=0.3, seed=int(rng.integers(2**31))),
         role="ground",
         radius=9.0,
     )
     backdrop = Backdrop(
         "backdrop",
-        Texture("noise", (0.35, 0.45, 0.38), (0.85, 0.80, 0.62), cell=0.9, grain=0.2, seed=int(rng.integers(2**31))),
+        Texture("noise", (0.35, 0.45, 0.38), (0.85, 0.80, 0.62), cell=0.9, grain=0.2, grain_cell=0.6, seed=int(rng.integers(2**31))),
         role="backdrop",
         radius=9.0,
         top=7.0,
@@ -455,32 +458,32 @@ def build_scene(layout: str = "ring", seed: int = 0) -> Scene:
     target = np.array([0.0, 0.0, 0.45])
     if layout == "ring":
         x, y = jit(0.75, 0.45)
-        prims.append(Sphere("red_sphere", _tex(rng, "stripes", 0, 0.14), center=(x, y, 0.45), radius=0.45))
+        prims.append(Sphere("red_sphere", _tex(rng, "stripes", 0, 0.3), center=(x, y, 0.45), radius=0.45))
         x, y = jit(-0.55, 0.75)
-        prims.append(Box("green_box", _tex(rng, "checker", 120, 0.18), center=(x, y, 0.35), half=(0.35, 0.35, 0.35), yaw_deg=float(rng.uniform(10, 35))))
+        prims.append(Box("green_box", _tex(rng, "checker", 120, 0.23), center=(x, y, 0.35), half=(0.35, 0.35, 0.35), yaw_deg=float(rng.uniform(10, 35))))
         x, y = jit(-0.1, -0.85)
-        prims.append(Cylinder("blue_cylinder", _tex(rng, "rings", 220, 0.12), center=(x, y, 0.0), radius=0.3, z0=0.0, z1=1.1))
+        prims.append(Cylinder("blue_cylinder", _tex(rng, "rings", 220, 0.18), center=(x, y, 0.0), radius=0.3, z0=0.0, z1=1.1))
         x, y = jit(0.95, -0.65)
-        prims.append(Sphere("yellow_sphere", _tex(rng, "noise", 52, 0.12), center=(x, y, 0.28), radius=0.28))
+        prims.append(Sphere("yellow_sphere", _tex(rng, "noise", 52, 0.2), center=(x, y, 0.28), radius=0.28))
         # A wall on the -x side hides the magenta sphere behind it from the cameras on the +x side.
         prims.append(Box("wall", _tex(rng, "rings", 30, 0.2, sat=0.35), role="occluder", center=(-1.35, 0.0, 0.6), half=(0.08, 0.85, 0.6), yaw_deg=float(rng.uniform(-6, 6))))
         x, y = jit(-1.85, -0.05, 0.05)
-        prims.append(Sphere("magenta_sphere", _tex(rng, "checker", 300, 0.1), center=(x, y, 0.3), radius=0.3))
+        prims.append(Sphere("magenta_sphere", _tex(rng, "checker", 300, 0.16), center=(x, y, 0.3), radius=0.3))
         hidden.append("magenta_sphere")
     elif layout == "occluded":
         x, y = jit(-0.55, 0.55)
-        prims.append(Sphere("red_sphere", _tex(rng, "stripes", 0, 0.14), center=(x, y, 0.42), radius=0.42))
+        prims.append(Sphere("red_sphere", _tex(rng, "stripes", 0, 0.3), center=(x, y, 0.42), radius=0.42))
         x, y = jit(-0.75, -0.5)
-        prims.append(Box("green_box", _tex(rng, "checker", 120, 0.18), center=(x, y, 0.3), half=(0.3, 0.3, 0.3), yaw_deg=float(rng.uniform(10, 35))))
+        prims.append(Box("green_box", _tex(rng, "checker", 120, 0.23), center=(x, y, 0.3), half=(0.3, 0.3, 0.3), yaw_deg=float(rng.uniform(10, 35))))
         x, y = jit(0.1, 0.0)
-        prims.append(Cylinder("blue_cylinder", _tex(rng, "rings", 220, 0.12), center=(x, y, 0.0), radius=0.25, z0=0.0, z1=0.9))
+        prims.append(Cylinder("blue_cylinder", _tex(rng, "rings", 220, 0.18), center=(x, y, 0.0), radius=0.25, z0=0.0, z1=0.9))
         # A pocket on the +x side, open only towards +x: its gold sphere is seen only by the cameras facing
         # the opening. Walls are taller than the line of sight from the highest ring over them.
         wall_tex = _tex(rng, "rings", 30, 0.2, sat=0.35)
         prims.append(Box("pocket_back", wall_tex, role="occluder", center=(1.0, 0.0, 0.8), half=(0.07, 0.62, 0.8)))
         prims.append(Box("pocket_left", wall_tex, role="occluder", center=(1.45, 0.55, 0.8), half=(0.45, 0.07, 0.8)))
         prims.append(Box("pocket_right", wall_tex, role="occluder", center=(1.45, -0.55, 0.8), half=(0.45, 0.07, 0.8)))
-        prims.append(Sphere("gold_sphere", _tex(rng, "checker", 45, 0.1), center=(1.42, rng.uniform(-0.05, 0.05), 0.3), radius=0.3))
+        prims.append(Sphere("gold_sphere", _tex(rng, "checker", 45, 0.16), center=(1.42, rng.uniform(-0.05, 0.05), 0.3), radius=0.3))
         hidden.append("gold_sphere")
     else:  # sparse-objects: a handful of small objects scattered over a wide area, no occluders
         kinds = ["sphere", "box", "cylinder", "sphere", "box", "cylinder"]
@@ -496,7 +499,7 @@ def build_scene(layout: str = "ring", seed: int = 0) -> Scene:
                     break
             placed.append((x, y))
             size = rng.uniform(0.16, 0.26)
-            tex = _tex(rng, texture, hue, 0.08)
+            tex = _tex(rng, texture, hue, 0.12)
             if kind == "sphere":
                 prims.append(Sphere(f"{name}_sphere", tex, center=(x, y, size), radius=size))
             elif kind == "box":
@@ -683,9 +686,10 @@ def _write_colmap(
 
 
 def _ground_truth(
-    spec: SceneSpec, scene: Scene, cams: List[RigCamera], coverage: np.ndarray, min_pixels: float, num_points: int
+    spec: SceneSpec, scene: Scene, cams: List[RigCamera], coverage: np.ndarray, min_pixels: float, points_per_prim: np.ndarray
 ) -> dict:
-    """ground_truth.json contents. coverage: (C, num_prims) fraction of each image covered by each primitive."""
+    """ground_truth.json contents. coverage: (C, num_prims) fraction of each image covered by each primitive;
+    points_per_prim: (num_prims,) 3D points sampled on each primitive."""
     threshold = min_pixels / (spec.width * spec.height)
     sees = coverage >= threshold
     names = [p.name for p in scene.prims]
@@ -693,6 +697,7 @@ def _ground_truth(
     for i, prim in enumerate(scene.prims):
         entry = prim.describe()
         entry["seen_by"] = [cams[c].name for c in np.flatnonzero(sees[:, i])]
+        entry["num_points3D"] = int(points_per_prim[i])
         objects.append(entry)
     limited = sorted(
         (
@@ -714,7 +719,7 @@ def _ground_truth(
         "light_direction": _scene_vec(scene.light),
         "intrinsics": {"model": "PINHOLE", "width": spec.width, "height": spec.height, "fx": f, "fy": f, "cx": spec.width / 2, "cy": spec.height / 2},
         "sees_min_pixels": min_pixels,
-        "num_points3D": num_points,
+        "num_points3D": int(points_per_prim.sum()),
         "cameras": [
             {
                 "name": cam.name,
@@ -730,7 +735,7 @@ def _ground_truth(
             for c, cam in enumerate(cams)
         ],
         "objects": objects,
-        "hidden": [{"name": n, "seen_by": objects[names.index(n)]["seen_by"]} for n in scene.hidden],
+        "hidden": [{"name": n, "seen_by": objects[names.index(n)]["seen_by"], "num_points3D": objects[names.index(n)]["num_points3D"]} for n in scene.hidden],
         "limited_visibility": limited,
     }
 
@@ -764,9 +769,9 @@ def generate(spec: SceneSpec, out_dir: Path, overwrite: bool = False, min_pixels
             counts = np.bincount(idx[idx >= 0].reshape(-1), minlength=len(scene.prims))
             coverage[c] = counts / idx.size
         rng = np.random.default_rng([spec.seed, 2000 + LAYOUTS.index(spec.layout)])
-        points, colors, _, vis, uv = sample_points(scene, cams, spec, rng)
+        points, colors, prim, vis, uv = sample_points(scene, cams, spec, rng)
         _write_colmap(tmp / "sparse" / "0", spec, cams, points, colors, vis, uv)
-        truth = _ground_truth(spec, scene, cams, coverage, min_pixels, len(points))
+        truth = _ground_truth(spec, scene, cams, coverage, min_pixels, np.bincount(prim, minlength=len(scene.prims)))
         (tmp / "ground_truth.json").write_text(json.dumps(truth, indent=1) + "\n")
         os.chmod(tmp, 0o755)  # mkdtemp makes it 0700
         if out_dir.exists():  # --overwrite (or an empty folder): swap, then remove the old one
