@@ -176,6 +176,10 @@ class Primitive:
     def surface(self, p: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
         raise NotImplementedError
 
+    def bound(self) -> Optional[Tuple[np.ndarray, float]]:
+        """Bounding sphere (centre (3,), radius), used to skip rays that cannot hit; None: unbounded."""
+        return None
+
     def describe(self) -> dict:
         out = {"name": self.name, "kind": type(self).__name__.lower(), "role": self.role}
         for key, value in asdict(self).items():
@@ -207,6 +211,9 @@ class Sphere(Primitive):
         t = np.where(t0 > _EPS, t0, t1)  # t1 only matters for rays starting inside (never for cameras)
         return np.where((disc >= 0) & (t > _EPS), t, np.inf)
 
+    def bound(self):
+        return np.asarray(self.center, dtype=np.float64), self.radius
+
     def surface(self, p):
         q = p - np.asarray(self.center)
         n = q / np.linalg.norm(q, axis=1, keepdims=True)
@@ -235,10 +242,14 @@ class Box(Primitive):
         with np.errstate(divide="ignore", invalid="ignore"):
             inv = 1.0 / np.where(ld == 0, 1e-300, ld)
             t1, t2 = (-h - lo) * inv, (h - lo) * inv
-        tmin = np.minimum(t1, t2).max(1)
-        tmax = np.maximum(t1, t2).min(1)
+        lo_t, hi_t = np.minimum(t1, t2), np.maximum(t1, t2)
+        tmin = np.maximum(np.maximum(lo_t[:, 0], lo_t[:, 1]), lo_t[:, 2])  # faster than .max(1) on (N, 3)
+        tmax = np.minimum(np.minimum(hi_t[:, 0], hi_t[:, 1]), hi_t[:, 2])
         t = np.where(tmin > _EPS, tmin, tmax)
         return np.where((tmax >= tmin) & (t > _EPS), t, np.inf)
+
+    def bound(self):
+        return np.asarray(self.center, dtype=np.float64), float(np.linalg.norm(self.half))
 
     def surface(self, p):
         lp = self._local(p, True)
@@ -281,6 +292,10 @@ class Cylinder(Primitive):
                 cap = np.where((tc > _EPS) & (xc * xc + yc * yc <= self.radius**2), tc, np.inf)
                 best = np.minimum(best, cap)
         return best
+
+    def bound(self):
+        half_h = (self.z1 - self.z0) / 2
+        return np.array([self.center[0], self.center[1], self.z0 + half_h]), math.hypot(self.radius, half_h)
 
     def surface(self, p):
         q = p - np.array([self.center[0], self.center[1], 0.0])
@@ -356,14 +371,31 @@ class Scene:
 
     def cast(self, o: np.ndarray, d: np.ndarray, only: Optional[Sequence[int]] = None) -> Tuple[np.ndarray, np.ndarray]:
         """o, d: (N, 3), d unit -> nearest hit distance t (N,) (inf: none) and primitive index (N,) (-1: none)."""
-        ids = range(len(self.prims)) if only is None else only
+        ids = list(range(len(self.prims)) if only is None else only)
         t = np.full(len(o), np.inf)
         idx = np.full(len(o), -1, dtype=np.int64)
+        bounds = {i: self.prims[i].bound() for i in ids}
+        bounded = [i for i in ids if bounds[i] is not None]
+        group = np.arange(len(o))
+        if len(bounded) > 1:  # cull against a sphere around all bounded primitives first, then each one's
+            centre = np.mean([bounds[i][0] for i in bounded], axis=0)
+            radius = max(np.linalg.norm(bounds[i][0] - centre) + bounds[i][1] for i in bounded)
+            group = _through_sphere(o, d, centre, radius)
         for i in ids:
-            ti = self.prims[i].intersect(o, d)
-            closer = ti < t
-            t[closer] = ti[closer]
-            idx[closer] = i
+            if bounds[i] is None:
+                rows = slice(None)
+            else:
+                rows = group[_through_sphere(o[group], d[group], *bounds[i])]
+                if len(rows) == 0:
+                    continue
+            ti = self.prims[i].intersect(o[rows], d[rows])
+            sub_t = t[rows]
+            closer = ti < sub_t
+            sub_t[closer] = ti[closer]
+            t[rows] = sub_t
+            sub_idx = idx[rows]
+            sub_idx[closer] = i
+            idx[rows] = sub_idx
         return t, idx
 
     def shade(self, p: np.ndarray, idx: np.ndarray) -> np.ndarray:
@@ -399,6 +431,14 @@ class Scene:
                 out[hit] = self.shade(oc[hit] + t[hit, None] * dc[hit], idx[hit])
             rgb[s : s + _CHUNK], t_all[s : s + _CHUNK], idx_all[s : s + _CHUNK] = out, t, idx
         return rgb, idx_all, t_all
+
+
+def _through_sphere(o: np.ndarray, d: np.ndarray, centre: np.ndarray, radius: float) -> np.ndarray:
+    """Indices of the rays (N, 3) that pass through a sphere ahead of (or around) their origin."""
+    oc = o - centre
+    b = np.einsum("ij,ij->i", oc, d)
+    c = np.einsum("ij,ij->i", oc, oc) - radius**2
+    return np.flatnonzero((b * b >= c) & ((b < 0) | (c < 0)))
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
