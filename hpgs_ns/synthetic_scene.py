@@ -68,6 +68,8 @@ class SceneSpec:
     """Horizontal field of view in degrees (PINHOLE, square pixels, principal point at the image centre)."""
     supersample: int = 2
     """Rays per pixel along each axis (2 = 2x2 supersampling, 1 = one ray through each pixel centre)."""
+    object_point_fraction: float = 0.5
+    """Share of the 3D points on objects and occluders; the rest lie on the ground and backdrop."""
 
     def validate(self) -> None:
         """Raise SceneSpecError (one line) for a bad field."""
@@ -89,6 +91,8 @@ class SceneSpec:
             raise SceneSpecError(f"--fov-deg must be within [10, 150] (got {self.fov_deg})")
         if not 1 <= self.supersample <= 8:
             raise SceneSpecError(f"--supersample must be within [1, 8] (got {self.supersample})")
+        if not 0.0 <= self.object_point_fraction <= 1.0:
+            raise SceneSpecError(f"--object-point-fraction must be within [0, 1] (got {self.object_point_fraction})")
 
     @property
     def focal(self) -> float:
@@ -661,33 +665,44 @@ def visibility(scene: Scene, cams: List[RigCamera], points: np.ndarray, spec: Sc
 def sample_points(
     scene: Scene, cams: List[RigCamera], spec: SceneSpec, rng: np.random.Generator
 ) -> Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Up to `num_points` surface points seen by >= 2 cameras: random rays through random pixels of random
-    cameras (so point density follows image coverage, like SfM), hit points kept when their track has >= 2 views.
+    """Up to `num_points` surface points seen by >= 2 cameras, in random order. Candidates are the hits of random
+    rays through random pixels of random cameras (density follows image coverage, like SfM); a share
+    `object_point_fraction` goes to objects and occluders (SfM finds most points on the textured subject, not on
+    the far ground), the rest to the ground and backdrop; a candidate is kept when its track has >= 2 views.
 
     -> points (P, 3) scene frame, colours (P, 3) uint8, primitive index (P,), visible (C, P), pixels (C, P, 2)."""
-    pts, idxs = [], []
-    total = 0
-    for _ in range(20):  # a few rounds in case many samples hit the sky or are seen once
-        n = max(2 * (spec.num_points - total), 64)
+    on_object = np.array([prim.role in ("object", "occluder") for prim in scene.prims])
+    want = {True: int(round(spec.num_points * spec.object_point_fraction)), False: 0}
+    want[False] = spec.num_points - want[True]
+    pools: Dict[bool, List[Tuple[np.ndarray, np.ndarray]]] = {True: [], False: []}
+    have = {True: 0, False: 0}
+    f, cx, cy = spec.focal, spec.width / 2, spec.height / 2
+    for _ in range(30):  # a few rounds: objects cover a small part of the images
+        if spec.num_points == 0 or (have[True] >= want[True] and have[True] + have[False] >= spec.num_points):
+            break
+        n = max(4 * spec.num_points, 256)
         cam_ids = rng.integers(0, len(cams), n)
         px = rng.uniform([0, 0], [spec.width, spec.height], (n, 2))
         o = np.stack([cams[c].center for c in cam_ids])
-        f, cx, cy = spec.focal, spec.width / 2, spec.height / 2
         local = np.stack([(px[:, 0] - cx) / f, (px[:, 1] - cy) / f, np.ones(n)], 1)
         d = np.einsum("nij,nj->ni", np.stack([cams[c].c2w for c in cam_ids]), local)
         d /= np.linalg.norm(d, axis=1, keepdims=True)
         t, idx = scene.cast(o, d)
-        hit = idx >= 0
-        p = o[hit] + t[hit, None] * d[hit]
-        vis, _ = visibility(scene, cams, p, spec)
-        keep = vis.sum(0) >= 2
-        pts.append(p[keep])
-        idxs.append(idx[hit][keep])
-        total += int(keep.sum())
-        if total >= spec.num_points:
-            break
-    points = np.concatenate(pts)[: spec.num_points] if pts else np.zeros((0, 3))
-    prim = np.concatenate(idxs)[: spec.num_points] if idxs else np.zeros(0, dtype=np.int64)
+        for obj in (True, False):
+            rows = np.flatnonzero((idx >= 0) & (on_object[np.maximum(idx, 0)] == obj))
+            rows = rows[: int(1.5 * max(want[obj] - have[obj], 0)) + 16]  # tracks are the costly part
+            p = o[rows] + t[rows, None] * d[rows]
+            keep = visibility(scene, cams, p, spec)[0].sum(0) >= 2
+            pools[obj].append((p[keep], idx[rows][keep]))
+            have[obj] += int(keep.sum())
+    cat = {obj: (np.concatenate([a for a, _ in pools[obj]] or [np.zeros((0, 3))]), np.concatenate([b for _, b in pools[obj]] or [np.zeros(0, np.int64)])) for obj in (True, False)}
+    n_obj = min(len(cat[True][0]), want[True])
+    n_sur = min(len(cat[False][0]), spec.num_points - n_obj)
+    n_obj = min(len(cat[True][0]), spec.num_points - n_sur)  # top up with object points if the rest ran short
+    points = np.concatenate([cat[True][0][:n_obj], cat[False][0][:n_sur]])
+    prim = np.concatenate([cat[True][1][:n_obj], cat[False][1][:n_sur]])
+    order = rng.permutation(len(points))
+    points, prim = points[order], prim[order]
     colors = _to_u8(scene.shade(points, prim)) if len(points) else np.zeros((0, 3), dtype=np.uint8)
     vis, uv = visibility(scene, cams, points, spec)
     return points, colors, prim, vis, uv
@@ -838,6 +853,7 @@ def make_scene(
     seed: int = 0,
     fov_deg: float = 60.0,
     supersample: int = 2,
+    object_point_fraction: float = 0.5,
     overwrite: bool = False,
 ) -> Path:
     """Generate a synthetic scene into `out_dir` (Mip-NeRF 360 layout) and return its path. Raises
@@ -852,6 +868,7 @@ def make_scene(
         num_points=num_points,
         fov_deg=fov_deg,
         supersample=supersample,
+        object_point_fraction=object_point_fraction,
     )
     return generate(spec, Path(out_dir), overwrite=overwrite)
 

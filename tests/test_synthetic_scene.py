@@ -269,6 +269,8 @@ def test_ground_truth_cameras_match_the_colmap_model(ring_scene):
     rec = pycolmap.Reconstruction(str(ring_scene / "sparse" / "0"))
     assert truth["layout"] == "ring" and truth["seed"] == 3 and truth["num_points3D"] == rec.num_points3D() == 600
     assert sum(o["num_points3D"] for o in truth["objects"]) == 600
+    assert sum(o["num_points3D"] for o in truth["objects"] if o["role"] in ("object", "occluder")) == 300  # default share 0.5
+    assert all(o["num_points3D"] > 0 for o in truth["objects"])
     assert [c["name"] for c in truth["cameras"]] == [rec.images[i].name for i in sorted(rec.images)]
     assert [c["ring"] for c in truth["cameras"]] == [0] * 6 + [1] * 5 + [2] * 5
     up = np.array(truth["up"])
@@ -341,6 +343,7 @@ def test_existing_output_needs_overwrite_and_is_replaced_whole(tmp_path):
         (dict(num_points=-1), "--num-points must be >= 0"),
         (dict(fov_deg=179.0), "--fov-deg"),
         (dict(supersample=0), "--supersample"),
+        (dict(object_point_fraction=1.5), "--object-point-fraction"),
     ],
 )
 def test_bad_arguments_raise_one_line_errors(tmp_path, kwargs, message):
