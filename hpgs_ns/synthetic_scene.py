@@ -12,6 +12,19 @@ cast shadows, so every pixel's colour is view-independent and known exactly. The
 visible surfaces with their true colours; each point's track lists exactly the images in which it is in the
 frustum and not occluded, with a 2D keypoint at its exact projection.
 
+Layouts: `ring` (default; objects around the centre, a wall hides the magenta sphere from the +x side),
+`occluded` (the gold sphere sits in a walled pocket open towards +x: only the ~quarter of the cameras facing the
+opening see it), `sparse-objects` (six small objects spread over a wide ground, no occluders).
+
+Usage: `hpgs make-scene --layout occluded --out data/occluded` or `make_scene(path, layout="occluded", seed=0)`.
+Default (48 cameras, 96x72, 4000 points) takes ~2-3 s on 2 CPU cores.
+
+ground_truth.json: `layout`, `seed`, `spec` (all SceneSpec fields), `frame`, `up`, `target`, `light_direction`,
+`intrinsics`, `cameras` (name, image_id, ring, height above the ground, azimuth_deg, center, look, `sees`: objects
+covering >= `sees_min_pixels` pixels, `coverage`: fraction of the image per object), `objects` (name, kind, role,
+geometry, texture, colour, `seen_by` camera names, `num_points3D`), `hidden` (the objects the layout hides from
+some cameras, with `seen_by`), `limited_visibility` (objects and occluders seen by < half the cameras).
+
 Frames: the scene is modelled with z up; the files use the COLMAP convention (world gravity along +y, so
 nerfstudio's `assume_colmap_world_coordinate_convention` maps the scene's up to +z; cameras x right, y down,
 z forward). Everything in ground_truth.json is in the COLMAP world frame of `sparse/0`.
@@ -835,7 +848,10 @@ def generate(spec: SceneSpec, out_dir: Path, overwrite: bool = False, min_pixels
             os.rename(tmp, out_dir)
             shutil.rmtree(old, ignore_errors=True)
         else:
-            os.rename(tmp, out_dir)
+            try:
+                os.rename(tmp, out_dir)
+            except OSError as err:  # another run wrote the same folder meanwhile
+                raise SceneSpecError(f"output folder {out_dir} appeared while generating; pass --overwrite to replace it") from err
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
