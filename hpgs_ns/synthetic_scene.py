@@ -802,6 +802,8 @@ def _ground_truth(
             }
             for c, cam in enumerate(cams)
         ],
+        "objects_note": "center in the COLMAP world frame; radius/half sizes in metres along the scene axes "
+        "(x, y, up); yaw_deg about the up axis; cylinders span heights z0..z1 above the ground",
         "objects": objects,
         "hidden": [{"name": n, "seen_by": objects[names.index(n)]["seen_by"], "num_points3D": objects[names.index(n)]["num_points3D"]} for n in scene.hidden],
         "limited_visibility": limited,
