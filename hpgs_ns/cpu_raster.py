@@ -107,8 +107,12 @@ def _project(
     height: int,
     eps2d: float,
     ortho: bool,
+    radius_floor: float = 0.01,
 ) -> Dict[str, Tensor]:
     """EWA projection as gsplat's `fully_fused_projection` kernel (broadcasts over leading dims).
+
+    `radius_floor` is the floor under b^2 - det in the radius: 0.01 in gsplat 1.4.0's unpacked kernel, 0.1 in its
+    packed one (an inconsistency of gsplat that a twin has to copy).
 
     Returns means2d [..., 2], depths [...], conics [..., 3] (inverse of the blurred 2D covariance: xx, xy, yy),
     compensations [...], det [...] (of the blurred covariance) and radius [...] (float, not differentiable)."""
@@ -145,7 +149,7 @@ def _project(
     conics = torch.stack([c / det, -b / det, a / det], -1)
     with torch.no_grad():
         half_trace = 0.5 * (a + c)
-        v1 = half_trace + torch.sqrt(torch.clamp_min(half_trace * half_trace - det, 0.01))
+        v1 = half_trace + torch.sqrt(torch.clamp_min(half_trace * half_trace - det, radius_floor))
         radius = torch.ceil(3.0 * torch.sqrt(v1))
     return {"means2d": mean2d, "depths": z, "conics": conics, "compensations": comp, "det": det, "radius": radius}
 
@@ -656,7 +660,7 @@ def rasterization(
             cov_w = torch.where(ok[:, None, None], covars, 0.0)
         safe_means = torch.where(ok[:, None], means, 0.0)
         proj = _project(safe_means[None], cov_w[None], viewmats[:, None], Ks[:, None], width, height, eps2d,
-                        camera_model == "ortho")
+                        camera_model == "ortho", radius_floor=0.1 if packed else 0.01)
         z, radius, m2 = proj["depths"], proj["radius"], proj["means2d"]
         valid = ok[None, :] & _row_finite(viewmats)[:, None]
         valid &= (z >= near_plane) & (z <= far_plane) & (proj["det"] > 0)

@@ -92,16 +92,25 @@ def checkpoint_scene(path: str, width: int, height: int, n_cameras: int) -> Dict
     )
 
 
+def photometric_target(shape) -> torch.Tensor:
+    """A fixed, smooth 'photo' [C, H, W, X] for a training-like L2 loss."""
+    C, H, W, X = shape
+    y, x = torch.meshgrid(torch.linspace(0, 1, H), torch.linspace(0, 1, W), indexing="ij")
+    chans = [0.5 + 0.4 * torch.sin(6.0 * x + 4.0 * y + 1.3 * k) for k in range(X)]
+    return torch.stack(chans, -1)[None].expand(C, H, W, X).contiguous()
+
+
 def render(fn, scene: Dict, device: str, **kw):
-    """Render with fixed sign-changing loss weights; returns images, alphas, grads and means2d grad/absgrad (CPU)."""
+    """Render, back-propagate a training-like loss (L2 to a smooth target + a weighted alpha term); returns
+    images, alphas, radii, parameter grads and means2d grad/absgrad, on the CPU."""
     s = {k: (v.to(device) if torch.is_tensor(v) else v) for k, v in scene.items()}
     for k in PARAMS:
         s[k] = s[k].detach().clone().requires_grad_()
     r, a, meta = fn(**s, **kw)
     meta["means2d"].retain_grad()
-    wr = torch.cos(torch.arange(r.numel(), dtype=torch.float32) * 0.37).reshape(r.shape).to(device)
-    wa = torch.sin(torch.arange(a.numel(), dtype=torch.float32) * 0.11).reshape(a.shape).to(device)
-    ((r * wr).sum() + (a * wa).sum()).backward()
+    target = photometric_target(r.shape).to(device)
+    wa = photometric_target(a.shape).to(device)
+    (((r - target) ** 2).sum() + (a * wa).sum()).backward()
     out = {"render": r, "alphas": a, "radii": meta["radii"], "means2d_grad": meta["means2d"].grad}
     if kw.get("absgrad"):
         out["absgrad"] = meta["means2d"].absgrad
