@@ -1,0 +1,163 @@
+"""End-to-end `hpgs` training on a tiny synthetic scene with the CPU rasterizer.
+
+One short run (60 steps, rounds at 20 and 40) is shared by the tests: it must train only on active views, add
+views on schedule, lower the loss, write `selected_views.json` and a checkpoint that torch loads with
+weights_only=True, and resume with the same active set.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+import time
+import urllib.request
+from pathlib import Path
+
+import pytest
+import torch
+
+from conftest import run_training, short_config
+
+
+@pytest.fixture(scope="module")
+def trained(tiny_scene, tmp_path_factory):
+    out = tmp_path_factory.mktemp("runs")
+    cfg = short_config(tiny_scene, out)
+    sampled, losses = [], []
+    from hpgs_ns.datamanager import ActiveDatamanager
+
+    original_next_train = ActiveDatamanager.next_train
+
+    def spy_next_train(self, step):
+        camera, data = original_next_train(self, step)
+        sampled.append((step, camera.metadata["cam_idx"], list(self.active)))
+        return camera, data
+
+    ActiveDatamanager.next_train = spy_next_train
+    try:
+        from nerfstudio.engine.trainer import Trainer
+
+        original_iteration = Trainer.train_iteration
+
+        def spy_iteration(self, step):
+            loss, loss_dict, metrics = original_iteration(self, step)
+            losses.append(float(loss))
+            return loss, loss_dict, metrics
+
+        Trainer.train_iteration = spy_iteration
+        try:
+            cfg.set_timestamp()
+            cfg.save_config()
+            trainer = cfg.setup(local_rank=0, world_size=1)
+            trainer.setup()
+            error_before = photometric_error(trainer)
+            trainer.train()
+            error_after = photometric_error(trainer)
+        finally:
+            Trainer.train_iteration = original_iteration
+    finally:
+        ActiveDatamanager.next_train = original_next_train
+    return {
+        "trainer": trainer, "cfg": cfg, "sampled": sampled, "losses": losses, "run_dir": Path(trainer.base_dir),
+        "error_before": error_before, "error_after": error_after,
+    }
+
+
+def photometric_error(trainer) -> float:
+    """Mean L1 of full-resolution eval-mode renders of the first 6 active views against their photos."""
+    dm, model = trainer.pipeline.datamanager, trainer.pipeline.model
+    views = sorted(dm.active)[:6]
+    renders = dm.render_views(model, views)
+    errors = [(r - dm.cached_train[i]["image"].float().div(255)).abs().mean() for r, i in zip(renders, views)]
+    return float(torch.stack(errors).mean())
+
+
+def test_rounds_happen_on_schedule_and_log(trained):
+    log = json.loads((trained["run_dir"] / "selected_views.json").read_text())
+    assert [r["step"] for r in log["rounds"]] == [20, 40]
+    assert len(log["initial"]) == 6 and len(log["active"]) == 8
+    chosen = [name for r in log["rounds"] for name in r["chosen"]]
+    assert set(chosen).isdisjoint(log["initial"]) and set(log["active"]) == set(log["initial"]) | set(chosen)
+    assert set(log["test"]).isdisjoint(set(log["active"]) | set(log["withheld"]))
+    assert len(log["active"]) + len(log["withheld"]) == 35 and len(log["test"]) == 5
+    # Mip-NeRF 360 convention: every 8th image in file-name order is a test view.
+    assert log["test"] == [f"{i:04d}.png" for i in range(0, 40, 8)]
+    assert all(r["seconds"] >= 0 and len(r["scores"]) == 35 - 6 - k for k, r in enumerate(log["rounds"]))
+
+
+def test_only_active_views_are_trained_on(trained):
+    dm = trained["trainer"].pipeline.datamanager
+    test_names = {Path(p).name for p in dm.eval_dataset.image_filenames}
+    assert len(trained["sampled"]) == 60
+    for step, index, active in trained["sampled"]:
+        assert index in active, f"step {step} trained on withheld view {index}"
+        assert dm.image_names[index] not in test_names
+    # before the first round only the 6 initial views are sampled, and each is visited
+    early = {idx for step, idx, _ in trained["sampled"] if step < 20}
+    assert early == set(trained["sampled"][0][2])
+
+
+def test_training_lowers_the_loss(trained):
+    # The logged loss is not comparable across steps (resolution schedule, random backgrounds, new views), so
+    # compare the full-resolution error on fixed views before and after training.
+    assert trained["error_after"] < 0.85 * trained["error_before"], (trained["error_before"], trained["error_after"])
+    assert all(l == l and l < 1 for l in trained["losses"])  # finite, no blow-up
+
+
+def test_checkpoint_loads_with_weights_only_and_keeps_the_active_set(trained):
+    ckpts = sorted((trained["run_dir"] / "nerfstudio_models").glob("step-*.ckpt"))
+    assert ckpts, "no checkpoint written"
+    state = torch.load(ckpts[-1], map_location="cpu", weights_only=True)  # what stock ns-eval/ns-viewer do
+    extra = state["pipeline"]["datamanager._extra_state"]
+    dm = trained["trainer"].pipeline.datamanager
+    assert extra["active"] == dm.active and len(extra["history"]) == 2
+    lrs = [g["lr"] for opt in state["optimizers"].values() for g in opt["param_groups"]]
+    assert all(type(lr) is float for lr in lrs)
+
+
+def test_resume_restores_active_set_and_ends_at_total_steps(trained, tmp_path):
+    run_dir = trained["run_dir"]
+    copy = tmp_path / "copy"
+    shutil.copytree(run_dir, copy)
+    cfg = short_config(trained["cfg"].data, tmp_path / "resumed", steps=80)
+    cfg.load_dir = copy / "nerfstudio_models"
+    cfg.pipeline.datamanager.max_rounds = 3
+    trainer = run_training(cfg)
+    dm = trainer.pipeline.datamanager
+    history = dm.history
+    assert [h["step"] for h in history] == [20, 40, 60]  # rounds 1-2 from the checkpoint, none repeated
+    assert history[:2] == trained["trainer"].pipeline.datamanager.history
+    assert trainer.step == 79  # ended at the configured total, not 60 + 80
+    assert set(trained["trainer"].pipeline.datamanager.active) < set(dm.active)
+
+
+def test_stock_ns_eval_and_ns_viewer_open_the_checkpoint(trained, tmp_path):
+    config = trained["run_dir"] / "config.yml"
+    out = tmp_path / "eval.json"
+    env = {k: v for k, v in __import__("os").environ.items() if k != "TORCH_FORCE_NO_WEIGHTS_ONLY_LOAD"}
+    subprocess.run([sys.executable, "-m", "nerfstudio.scripts.eval", "--load-config", str(config), "--output-path", str(out)],
+                   check=True, env=env, capture_output=True)
+    results = json.loads(out.read_text())["results"]
+    assert 5 < results["psnr"] < 60 and 0 <= results["lpips"] <= 1
+
+    port = 7000 + (int(time.time()) % 900)
+    viewer = subprocess.Popen(
+        [sys.executable, "-m", "nerfstudio.scripts.viewer.run_viewer", "--load-config", str(config),
+         "--viewer.websocket-port", str(port), "--viewer.websocket-host", "127.0.0.1"],
+        env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+    )
+    try:
+        page, deadline = None, time.time() + 120
+        while time.time() < deadline and viewer.poll() is None:
+            try:
+                page = urllib.request.urlopen(f"http://127.0.0.1:{port}", timeout=2).read().decode()
+                break
+            except OSError:
+                time.sleep(1)
+        assert viewer.poll() is None, viewer.stdout.read().decode()[-2000:]
+        assert page is not None and "<html" in page.lower()
+    finally:
+        viewer.kill()
+        viewer.wait()
