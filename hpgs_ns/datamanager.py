@@ -60,6 +60,8 @@ class ActiveDatamanagerConfig(FullImageDatamanagerConfig):
     initial_views: Literal["even", "fps", "random"] = "even"
     """How the initial views are chosen: evenly spaced along the capture (file-name order); `fps`: the first
     view, then farthest camera centres (FisherRF's start); or uniformly at random (seeded)."""
+    initial_view_names: Tuple[str, ...] = ()
+    """Explicit initial views by image file name (overrides initial-views)."""
     select_every: int = 2000
     """A selection round runs at steps select_every, 2*select_every, ... (never at step 0)."""
     select_at: Tuple[int, ...] = ()
@@ -82,6 +84,9 @@ class ActiveDatamanagerConfig(FullImageDatamanagerConfig):
     """Options of the `hpgs` selector (the paper's method)."""
     condorcet: CondorcetSelectorConfig = field(default_factory=CondorcetSelectorConfig)
     """Options of the `condorcet` selector (the paper's ablation)."""
+    strict_init: bool = False
+    """Keep only the COLMAP seed points whose track includes at least two initial views, so withheld and test
+    views leak no geometry into the starting splat."""
     eval_each_round: bool = False
     """Measure test-view PSNR just before each round (recorded in selected_views.json; used by `hpgs bench`)."""
     snapshot_every: int = 0
@@ -108,6 +113,8 @@ class ActiveDatamanager(FullImageDatamanager):
         self.generator = torch.Generator().manual_seed(self.config.seed)
         self.active: List[int] = self._initial_views()
         self.history: List[Dict[str, Any]] = []
+        if self.config.strict_init:
+            self._keep_points_seen_by_initial_views()
         # Only training selects; ns-eval / ns-viewer (test modes) must open a run without the selector's files.
         self.selector = self._setup_selector() if test_mode == "val" else None
         self.run_dir: Optional[Path] = None
@@ -124,6 +131,11 @@ class ActiveDatamanager(FullImageDatamanager):
 
     def _initial_views(self) -> List[int]:
         n, k = len(self.train_dataset), self.config.num_initial_views
+        if self.config.initial_view_names:
+            unknown = [v for v in self.config.initial_view_names if v not in self.image_names]
+            if unknown:
+                raise ActiveViewError(f"initial view {unknown[0]!r} is not a training image (test views cannot be used)")
+            return sorted(self.image_names.index(v) for v in self.config.initial_view_names)
         if k < 1:
             raise ActiveViewError("--pipeline.datamanager.num-initial-views must be at least 1")
         if k >= n:
@@ -135,6 +147,28 @@ class ActiveDatamanager(FullImageDatamanager):
             return sorted(torch.randperm(n, generator=self.generator)[:k].tolist())
         centres = self.train_dataset.cameras.camera_to_worlds[:, :3, 3]
         return sorted(farthest_point_order(centres, k, start=0))
+
+    def _keep_points_seen_by_initial_views(self, min_views: int = 2) -> None:
+        """Filter the dataparser's seed points in place (the pipeline hands them to the model after this)."""
+        from nerfstudio.data.utils import colmap_parsing_utils as colmap_utils
+
+        meta = self.train_dataparser_outputs.metadata
+        if "points3D_xyz" not in meta:
+            return
+        model_dir = Path(self.config.dataparser.data) / self.config.dataparser.colmap_path
+        read = colmap_utils.read_images_binary if (model_dir / "images.bin").exists() else colmap_utils.read_images_text
+        read_pts = (
+            colmap_utils.read_points3D_binary if (model_dir / "points3D.bin").exists() else colmap_utils.read_points3D_text
+        )
+        name_to_id = {im.name: im_id for im_id, im in read(model_dir / ("images.bin" if read is colmap_utils.read_images_binary else "images.txt")).items()}
+        initial_ids = {name_to_id[self.image_names[i]] for i in self.active}
+        points = read_pts(model_dir / ("points3D.bin" if read_pts is colmap_utils.read_points3D_binary else "points3D.txt"))
+        keep = torch.tensor([len(initial_ids.intersection(p.image_ids.tolist())) >= min_views for p in points.values()])
+        if keep.numel() != meta["points3D_xyz"].shape[0]:
+            raise ActiveViewError("seed points and COLMAP tracks disagree; re-run without --pipeline.datamanager.strict-init")
+        for key in [k for k, v in meta.items() if k.startswith("points3D_") and torch.is_tensor(v) and v.shape[:1] == keep.shape]:
+            meta[key] = meta[key][keep]
+        CONSOLE.print(f"strict init: kept {int(keep.sum())} of {keep.numel()} seed points seen by >= {min_views} initial views")
 
     def sample_train_cameras(self) -> List[int]:
         """A shuffled pass over the active views (nerfstudio calls this whenever a pass is used up)."""
