@@ -236,7 +236,6 @@ class _Plan:
         self.n_tiles = tw * th
         self.P = tile_size * tile_size
         M = means2d.shape[0]
-        self.M = M
 
         # gsplat's isect_tiles: tile_min = clamp(floor((x - r) / ts)), tile_max = clamp(ceil((x + r) / ts)), float32.
         m2 = means2d.float()
@@ -259,7 +258,6 @@ class _Plan:
         self.flatten = pair[order]  # [n_isects] -> valid pair index, sorted by (camera, tile, depth)
         gtile_sorted = gtile[order]
         self.gtile_sorted = gtile_sorted
-        self.sorted_depth_key = _depth_sort_key(depths)[self.flatten] if n_isects else key[:0]
         tile_counts = torch.bincount(gtile_sorted, minlength=self.C * self.n_tiles)
         self.tile_counts = tile_counts
         self.tile_offsets = torch.cumsum(tile_counts, 0) - tile_counts
@@ -603,11 +601,14 @@ def rasterization(
     if distributed:
         raise UnsupportedArgumentError("cpu_raster.rasterization: distributed=True is not supported")
     if camera_model not in ("pinhole", "ortho"):
-        raise UnsupportedArgumentError(f"cpu_raster.rasterization: camera_model={camera_model!r} is not supported (pinhole, ortho)")
+        raise UnsupportedArgumentError(
+            f"cpu_raster.rasterization: camera_model={camera_model!r} is not supported (pinhole, ortho)")
     if render_mode not in _RENDER_MODES:
-        raise UnsupportedArgumentError(f"cpu_raster.rasterization: render_mode={render_mode!r} is not one of {_RENDER_MODES}")
+        raise UnsupportedArgumentError(
+            f"cpu_raster.rasterization: render_mode={render_mode!r} is not one of {_RENDER_MODES}")
     if rasterize_mode not in ("classic", "antialiased"):
-        raise UnsupportedArgumentError(f"cpu_raster.rasterization: rasterize_mode={rasterize_mode!r} is not classic or antialiased")
+        raise UnsupportedArgumentError(
+            f"cpu_raster.rasterization: rasterize_mode={rasterize_mode!r} is not classic or antialiased")
     if sh_degree is not None and not (0 <= sh_degree <= 4):
         raise UnsupportedArgumentError(f"cpu_raster.rasterization: sh_degree={sh_degree} is not in 0..4")
     if tile_size < 1 or width < 1 or height < 1:
@@ -710,7 +711,6 @@ def rasterization(
 
     # ---- tiles and compositing ---------------------------------------------------------------------------------
     plan = _Plan(means2d_v.detach(), radii_valid, depths_v.detach(), cids, C, width, height, tile_size)
-    M = cids.shape[0]
     if packed:
         means2d_meta, rows = means2d_v, None
     else:
@@ -762,5 +762,4 @@ def rasterization(
         "tile_size": tile_size,
         "n_cameras": C,
     }
-    del M
     return render, alphas, meta
