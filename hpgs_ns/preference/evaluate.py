@@ -34,7 +34,7 @@ def raw_features_of(model: PreferenceModel, paths: Sequence[Path], batch_size: i
         out[[i for i, _ in items]] = model.backbone(batch).float().cpu()
 
     steps = enumerate(paths)
-    if progress and len(paths) > batch_size:
+    if progress and len(paths) > batch_size and CONSOLE.is_terminal:  # no stray blank lines in logs
         steps = track(steps, total=len(paths), description="features", console=CONSOLE, transient=True)
     for i, path in steps:
         x = model.preprocess(load_image(path)[None])[0]

@@ -48,8 +48,9 @@ def fit_head(model: PreferenceModel, raw: torch.Tensor, index: torch.Tensor, lab
     """
     set_feature_statistics(model, raw)
     z = model.standardise(raw.to(model.feature_mean.device)).double()
-    i1, i2, y = index[:, 0], index[:, 1], labels.double()
-    w = torch.zeros(z.shape[1], dtype=torch.float64, requires_grad=True)
+    index, y = index.to(z.device), labels.to(z.device).double()
+    i1, i2 = index[:, 0], index[:, 1]
+    w = torch.zeros(z.shape[1], dtype=torch.float64, device=z.device, requires_grad=True)
     opt = torch.optim.LBFGS([w], lr=1.0, max_iter=max_iter, tolerance_grad=1e-9, line_search_fn="strong_wolfe")
     diff = z[i1] - z[i2]
 
@@ -120,7 +121,8 @@ def train_minibatch(model: PreferenceModel, pairs: Sequence[Pair], finetune: boo
         order = torch.randperm(len(pairs), generator=generator).tolist()
         total = 0.0
         batches = range(0, len(order), batch_size)
-        for start in track(batches, description=f"epoch {epoch + 1}/{epochs}", console=CONSOLE, transient=True):
+        for start in track(batches, description=f"epoch {epoch + 1}/{epochs}", console=CONSOLE, transient=True,
+                           disable=not CONSOLE.is_terminal):
             chunk = [pairs[i] for i in order[start : start + batch_size]]
             s1, s2 = [], []
             for pair in chunk:
@@ -137,6 +139,7 @@ def train_minibatch(model: PreferenceModel, pairs: Sequence[Pair], finetune: boo
             optimiser.step()
             total += float(loss.detach()) * len(chunk)
         history.append(total / max(1, len(pairs)))
+        print(f"train-pref: epoch {epoch + 1}/{epochs} loss {history[-1]:.4f}", file=sys.stderr)
     model.eval().requires_grad_(False)
     return history
 
