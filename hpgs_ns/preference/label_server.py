@@ -28,6 +28,7 @@ from pathlib import Path
 from typing import Dict, List, Literal, Optional
 
 import tyro
+from typing_extensions import Annotated
 
 from hpgs_ns.preference.model import CheckpointError
 from hpgs_ns.preference.pairs import COLUMNS, SKIPPED, PairsError, parse_flag, write_rows_atomic
@@ -229,7 +230,7 @@ def make_handler(book: LabelBook):
 class Label:
     """Label which render of each pair is worse: a browser page (keys 1/2/s/u), or an error oracle."""
 
-    dir: tyro.conf.Positional[Path]
+    dir: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="DIR")]
     """Folder with pairs.csv and the images it names (and renders.csv for --oracle)."""
     pairs_csv: str = "pairs.csv"
     """Pairs file inside DIR."""
