@@ -175,6 +175,7 @@ def main() -> None:
     fd, tmp = tempfile.mkstemp(dir=args.out.parent, prefix=".cpu_raster.", suffix=".json")
     with os.fdopen(fd, "w") as fh:
         json.dump(result, fh, indent=2)
+    os.chmod(tmp, 0o644)
     os.replace(tmp, args.out)
     console.print(f"wrote {args.out}")
 
