@@ -52,6 +52,9 @@ class Collect:
     """Image downscale factor for the dataparser (None: nerfstudio's automatic choice)."""
     rasterizer: Literal["auto", "gsplat", "cpu"] = "auto"
     """Rasterizer for training and rendering."""
+    save_short_side: Optional[int] = None
+    """Save the copied renders with this short side (JPEG, quality 95) instead of full-size PNG; metrics are
+    always computed at full size. Keeps large collections small enough to move around."""
     extra_args: str = ""
     """Extra `ns-train hpgs` arguments (quoted), e.g. schedule options for short runs."""
 
@@ -79,7 +82,7 @@ class Collect:
         if not (run_dir / "snapshots").is_dir():
             CONSOLE.print(f"[bold]Training[/bold]: {shlex.join(cmd)}")
             subprocess.run(cmd, check=True)
-        rows = score_snapshots(run_dir, self.out / "renders")
+        rows = score_snapshots(run_dir, self.out / "renders", self.save_short_side)
         write_csv_atomic(self.out / "renders.csv", ["image", "step", "view", "psnr", "ssim", "lpips"], rows)
         pairs = draw_pairs([r["image"] for r in rows], self.pairs, self.seed)
         write_csv_atomic(self.out / "pairs.csv", ["Image_1", "Image_2", "Human Preference"], pairs)
@@ -95,7 +98,7 @@ def ground_truth_images(run_dir: Path) -> dict:
     return {Path(p).stem: Path(p) for p in outputs.image_filenames}
 
 
-def score_snapshots(run_dir: Path, render_dir: Path) -> List[dict]:
+def score_snapshots(run_dir: Path, render_dir: Path, save_short_side: Optional[int] = None) -> List[dict]:
     """Copy every snapshot render to `render_dir` and measure it against its photo."""
     from hpgs_ns.metrics import lpips, psnr, ssim
 
@@ -107,8 +110,15 @@ def score_snapshots(run_dir: Path, render_dir: Path) -> List[dict]:
         step = int(path.parent.name.split("-")[1])
         render = load_rgb(path)
         photo = load_rgb(photos[path.stem], size=(render.shape[1], render.shape[0]))
-        name = f"s{step:06d}_{path.stem}.png"
-        shutil.copyfile(path, render_dir / name)
+        name = f"s{step:06d}_{path.stem}." + ("jpg" if save_short_side else "png")
+        if save_short_side:
+            with Image.open(path) as im:
+                scale = save_short_side / min(im.size)
+                im.convert("RGB").resize((round(im.width * scale), round(im.height * scale)), Image.Resampling.BICUBIC).save(
+                    render_dir / name, quality=95
+                )
+        else:
+            shutil.copyfile(path, render_dir / name)
         rows.append(
             {"image": f"renders/{name}", "step": step, "view": path.stem, "psnr": f"{psnr(render, photo):.4f}",
              "ssim": f"{ssim(render, photo):.5f}", "lpips": f"{lpips(render, photo):.5f}"}
