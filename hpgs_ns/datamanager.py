@@ -40,6 +40,7 @@ from hpgs_ns.selectors import (
     SelectionError,
     check_selection,
 )
+from hpgs_ns.selectors.base import eval_mode
 
 SelectorName = Literal["random", "farthest", "fisher", "hpgs", "condorcet"]
 
@@ -269,9 +270,7 @@ class ActiveDatamanager(FullImageDatamanager):
     @torch.no_grad()
     def render_views(self, model, indices: Sequence[int], short_side: Optional[int] = None) -> List[torch.Tensor]:
         """Render training-split views with the current splat, in eval mode; each [H, W, 3] in [0, 1]."""
-        was_training = model.training
-        model.eval()
-        try:
+        with eval_mode(model):
             images = []
             for i in indices:
                 camera = self.train_dataset.cameras[int(i) : int(i) + 1].to(model.device)
@@ -279,8 +278,6 @@ class ActiveDatamanager(FullImageDatamanager):
                     camera.rescale_output_resolution(short_side / float(min(camera.width.item(), camera.height.item())))
                 images.append(model.get_outputs_for_camera(camera)["rgb"].clamp(0, 1))
             return images
-        finally:
-            model.train(was_training)
 
     def selection_context(self, step: int, model) -> SelectionContext:
         """The typed context a selector sees for a round at `step`."""
@@ -338,9 +335,7 @@ class ActiveDatamanager(FullImageDatamanager):
         """Mean PSNR over the test views with the current splat (eval mode)."""
         from hpgs_ns.metrics import psnr
 
-        was_training = model.training
-        model.eval()
-        try:
+        with eval_mode(model):
             values = []
             for camera, batch in self.fixed_indices_eval_dataloader:
                 rgb = model.get_outputs_for_camera(camera)["rgb"].clamp(0, 1)
@@ -348,8 +343,6 @@ class ActiveDatamanager(FullImageDatamanager):
                 gt = gt / 255.0 if batch["image"].dtype == torch.uint8 else gt
                 values.append(psnr(rgb.cpu(), gt[..., :3].cpu()))
             return float(np.mean(values)) if values else float("nan")
-        finally:
-            model.train(was_training)
 
     def _log_chosen_render(self, model, index: int, step: int) -> None:
         try:

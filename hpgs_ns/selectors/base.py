@@ -85,13 +85,17 @@ def check_selection(selection: Selection, context: SelectionContext) -> Selectio
 
 @contextlib.contextmanager
 def eval_mode(model):
-    """Render in eval mode (fixed background, full resolution, no densification bookkeeping), then restore."""
+    """Render in eval mode (fixed background, full resolution, no densification bookkeeping), then restore the
+    mode and splatfacto's `info` (the densification strategy reads the last *training* render's info)."""
     was_training = model.training
+    info = getattr(model, "info", None)
     model.eval()
     try:
         yield model
     finally:
         model.train(was_training)
+        if info is not None:
+            model.info = info
 
 
 def render_with_grad(model, cameras: Cameras, index: int, resolution_scale: float = 1.0) -> torch.Tensor:
