@@ -228,14 +228,21 @@ def rel(a: torch.Tensor, b: torch.Tensor) -> float:
         dict(render_mode="RGB+D", rasterize_mode="antialiased"),
         dict(sh_degree=3, n_cameras=2, backgrounds=True),
         dict(sh_degree=1, rasterize_mode="antialiased", packed=True),
+        dict(per_camera_colors=True, n_cameras=2, D=5, backgrounds=True),  # [C, N, D] features, D != 3
+        dict(per_camera_colors=True, n_cameras=2, sh_degree=2, packed=True),  # [C, N, K, 3] SH
     ],
     ids=lambda c: ",".join(f"{k}={v}" for k, v in c.items()) or "default",
 )
 def test_matches_reference_images_and_gradients(case):
     case = dict(case)
-    scene = make_scene(n=36, seed=3, n_cameras=case.pop("n_cameras", 1), sh_degree=case.pop("sh_degree", None))
+    C = case.pop("n_cameras", 1)
+    scene = make_scene(n=36, seed=3, n_cameras=C, sh_degree=case.pop("sh_degree", None), D=case.pop("D", 3))
+    if case.pop("per_camera_colors", False):
+        scene["colors"] = scene["colors"][None].repeat((C,) + (1,) * scene["colors"].dim()) * torch.linspace(
+            0.5, 1.0, C, dtype=F64).reshape((C,) + (1,) * scene["colors"].dim())
     if case.pop("backgrounds", False):
-        scene["backgrounds"] = torch.tensor([[0.2, 0.5, 0.9]] * scene["viewmats"].shape[0], dtype=F64)
+        D = 3 if scene["sh_degree"] is not None else scene["colors"].shape[-1]
+        scene["backgrounds"] = torch.linspace(0.1, 0.9, C * D, dtype=F64).reshape(C, D)
     packed = case.pop("packed", False)
     grad_of = PARAMS + (("backgrounds",) if "backgrounds" in scene else ())
     r_ref, a_ref, m_ref, g_ref = render_and_grad(reference_rasterization, scene, grad_of, packed=packed, **case)
