@@ -623,14 +623,15 @@ def test_many_overlapping_gaussians_at_one_pixel():
     sh_degree=st.sampled_from([None, 0, 1, 2, 3]),
     log_scale=st.floats(-4.0, 0.5),
     opacity_edge=st.sampled_from([None, 0.0, 1.0]),
+    tile_size=st.sampled_from([16, 16, 8]),
 )
 def test_randomised_against_reference(seed, n, width, height, n_cameras, packed, mode, render_mode, sh_degree,
-                                      log_scale, opacity_edge):
+                                      log_scale, opacity_edge, tile_size):
     scene = make_scene(n=n, seed=seed, width=width, height=height, n_cameras=n_cameras, sh_degree=sh_degree,
                        scale_range=(0.3 * 10**log_scale, 10**log_scale))
     if opacity_edge is not None:
         scene["opacities"][0] = opacity_edge
-    kw = dict(rasterize_mode=mode, render_mode=render_mode)
+    kw = dict(rasterize_mode=mode, render_mode=render_mode, tile_size=tile_size)
     r_ref, a_ref, m_ref, g_ref = render_and_grad(reference_rasterization, scene, packed=packed, **kw)
     r, a, meta, g = render_and_grad(rasterization, scene, packed=packed, absgrad=True, **kw)
     torch.testing.assert_close(r, r_ref, rtol=1e-8, atol=1e-9)
