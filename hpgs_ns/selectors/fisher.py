@@ -28,7 +28,7 @@ from typing import Dict, List, Literal, Sequence, Type
 import torch
 from nerfstudio.configs.base_config import InstantiateConfig
 
-from hpgs_ns.selectors.base import Selection, SelectionContext, SelectionError, eval_mode, render_with_grad
+from hpgs_ns.selectors.base import Selection, SelectionContext, SelectionError, eval_mode
 
 FISHER_PARAMS = ("means", "features_dc", "features_rest", "scales", "opacities")
 
@@ -56,6 +56,59 @@ class FisherSelectorConfig(InstantiateConfig):
     structure; halving the side quarters the cost)."""
 
 
+@dataclass
+class ViewHessian:
+    """diag(J^T J) of one view, stored only for the Gaussians inside its frustum."""
+
+    ids: torch.Tensor
+    """[M] indices of the Gaussians that can touch the view."""
+    h: Dict[str, torch.Tensor]
+    """Per parameter tensor, [M, ...] entries of the diagonal for those Gaussians."""
+
+
+def frustum_ids(model, camera, margin_sigmas: float = 3.0) -> torch.Tensor:
+    """Indices of Gaussians whose 3-sigma extent can reach the image (in front of the near plane)."""
+    from nerfstudio.models.splatfacto import get_viewmat
+
+    with torch.no_grad():
+        viewmat = get_viewmat(camera.camera_to_worlds)[0].to(model.device)
+        K = camera.get_intrinsics_matrices()[0].to(model.device)
+        W, H = int(camera.width.item()), int(camera.height.item())
+        cam = model.means @ viewmat[:3, :3].T + viewmat[:3, 3]
+        z = cam[:, 2]
+        front = z > 0.01
+        zc = z.clamp_min(0.01)
+        u = K[0, 0] * cam[:, 0] / zc + K[0, 2]
+        v = K[1, 1] * cam[:, 1] / zc + K[1, 2]
+        r = margin_sigmas * torch.exp(model.scales).amax(dim=-1) * K[0, 0] / zc
+        inside = (u + r > 0) & (u - r < W) & (v + r > 0) & (v - r < H)
+        return torch.nonzero(front & inside).squeeze(-1)
+
+
+def render_subset(model, camera, leaves: Dict[str, torch.Tensor], ids: torch.Tensor) -> torch.Tensor:
+    """RGB render [H, W, 3] of the Gaussians `ids`, differentiable w.r.t. the `leaves` (raw parameters of those
+    Gaussians, as splatfacto stores them); the others come from the model, detached."""
+    from nerfstudio.models.splatfacto import get_viewmat
+
+    raw = {n: leaves[n] if n in leaves else model.gauss_params[n][ids].detach() for n in model.gauss_params.keys()}
+    viewmat = get_viewmat(camera.camera_to_worlds).to(model.device)
+    K = camera.get_intrinsics_matrices().to(model.device)
+    W, H = int(camera.width.item()), int(camera.height.item())
+    colors = torch.cat((raw["features_dc"][:, None, :], raw["features_rest"]), dim=1)
+    if model.config.sh_degree > 0:
+        sh_degree = min(model.step // model.config.sh_degree_interval, model.config.sh_degree)
+    else:
+        colors, sh_degree = torch.sigmoid(colors).squeeze(1), None
+    render, alpha, _ = model._rasterize(
+        means=raw["means"], quats=raw["quats"], scales=torch.exp(raw["scales"]),
+        opacities=torch.sigmoid(raw["opacities"]).squeeze(-1), colors=colors, viewmats=viewmat, Ks=K,
+        width=W, height=H, packed=False, near_plane=0.01, far_plane=1e10, render_mode="RGB",
+        sh_degree=sh_degree, sparse_grad=False, absgrad=False, rasterize_mode=model.config.rasterize_mode,
+    )
+    background = model.background_color.to(model.device)
+    return (render + (1 - alpha) * background)[0]
+
+
 class FisherSelector:
     """Greedy information-gain selection; each pick joins H_train before the next."""
 
@@ -63,33 +116,42 @@ class FisherSelector:
         self.config = config
         if config.probes < 1 or config.train_probe_factor < 1:
             raise SelectionError("--pipeline.datamanager.fisher.probes and train-probe-factor must be >= 1")
+        self.last_stats: Dict[str, float] = {}
 
     def param_names(self) -> List[str]:
         return list(FISHER_PARAMS) + (["quats"] if self.config.include_rotations else [])
 
-    def view_hessian(self, context: SelectionContext, index: int, probes: int) -> Dict[str, torch.Tensor]:
-        """diag(J^T J) of one view for each parameter tensor (probe estimate or exact)."""
+    def view_hessian(self, context: SelectionContext, index: int, probes: int) -> ViewHessian:
+        """diag(J^T J) of one view (probe estimate or exact), for the Gaussians in its frustum."""
         model = context.model
-        params = [model.gauss_params[name] for name in self.param_names()]
-        rgb = render_with_grad(model, context.cameras, index, self.config.resolution_scale)
+        camera = context.cameras[int(index) : int(index) + 1].to(model.device)
+        if self.config.resolution_scale != 1.0:
+            camera.rescale_output_resolution(self.config.resolution_scale)
+        ids = frustum_ids(model, camera)
+        names = self.param_names()
+        leaves = {n: model.gauss_params[n][ids].detach().requires_grad_(True) for n in names}
+        h = {n: torch.zeros_like(t) for n, t in leaves.items()}
+        if ids.numel() == 0:
+            return ViewHessian(ids, h)
+        with torch.enable_grad():
+            rgb = render_subset(model, camera, leaves, ids)
+        params = [leaves[n] for n in names]
         if self.config.mode == "exact":
             flat = rgb.reshape(-1)
-            h = [torch.zeros_like(p) for p in params]
             for k in range(flat.numel()):
                 grads = torch.autograd.grad(flat[k], params, retain_graph=True, allow_unused=True)
-                for acc, g in zip(h, grads):
+                for n, g in zip(names, grads):
                     if g is not None:
-                        acc += g.detach() ** 2
+                        h[n] += g.detach() ** 2
         else:
-            h = [torch.zeros_like(p) for p in params]
             for k in range(probes):
-                eps = torch.randint(0, 2, rgb.shape, generator=context.generator).to(rgb) * 2 - 1
+                eps = (torch.randint(0, 2, rgb.shape, generator=context.generator) * 2 - 1).to(rgb)
                 grads = torch.autograd.grad(rgb, params, grad_outputs=eps, retain_graph=k < probes - 1, allow_unused=True)
-                for acc, g in zip(h, grads):
+                for n, g in zip(names, grads):
                     if g is not None:
-                        acc += g.detach() ** 2
-            h = [acc / probes for acc in h]
-        return {name: t for name, t in zip(self.param_names(), h)}
+                        h[n] += g.detach() ** 2
+            h = {n: t / probes for n, t in h.items()}
+        return ViewHessian(ids, h)
 
     def weights(self, h_train: Dict[str, torch.Tensor]) -> Dict[str, torch.Tensor]:
         """1 / (H_train + lambda) per parameter tensor, with lambda's relative floor."""
@@ -99,39 +161,44 @@ class FisherSelector:
             out[name] = 1.0 / (h + floor)
         return out
 
-    def score(self, h_view: Dict[str, torch.Tensor], weights: Dict[str, torch.Tensor]) -> float:
-        return float(sum((h_view[n] * weights[n]).sum() for n in h_view))
+    @staticmethod
+    def score(view: ViewHessian, weights: Dict[str, torch.Tensor]) -> float:
+        return float(sum((view.h[n] * weights[n][view.ids]).sum() for n in view.h))
 
     def select(self, context: SelectionContext) -> Selection:
         train_probes = self.config.probes * self.config.train_probe_factor
         picked: List[int] = []
         scores: Dict[int, float] = {}
         with eval_mode(context.model):
-            h_train = self._sum(context, context.active, train_probes)
+            # Recomputed every round: densification renumbers the Gaussians.
+            h_train = self.train_hessian(context, context.active, train_probes)
             for _ in range(context.num_to_pick):
                 weights = self.weights(h_train)
-                best, best_score, best_h = -1, -math.inf, None
+                best, best_score, best_view = -1, -math.inf, None
                 # One pass over the pool keeps only the running best's Hessian (memory stays O(#params)).
                 for c in context.candidates:
                     if c in picked:
                         continue
-                    h = self.view_hessian(context, c, self.config.probes)
-                    s = self.score(h, weights)
+                    view = self.view_hessian(context, c, self.config.probes)
+                    s = self.score(view, weights)
                     if not math.isfinite(s):
                         raise SelectionError(f"fisher score of view {context.image_names[c]} is not finite")
                     if not picked:
                         scores[c] = s
                     if s > best_score:
-                        best, best_score, best_h = c, s, h
+                        best, best_score, best_view = c, s, view
                 picked.append(best)
                 # Greedy batch: the pick's information joins the training side before the next pick.
                 for name in h_train:
-                    h_train[name] = h_train[name] + best_h[name]
+                    h_train[name].index_add_(0, best_view.ids, best_view.h[name])
         return Selection(indices=picked, scores=scores)
 
-    def _sum(self, context: SelectionContext, views: Sequence[int], probes: int) -> Dict[str, torch.Tensor]:
-        total: Dict[str, torch.Tensor] = {}
+    def train_hessian(self, context: SelectionContext, views: Sequence[int], probes: int) -> Dict[str, torch.Tensor]:
+        """H_train: the sum of diag(J^T J) over `views`, full size."""
+        model = context.model
+        total = {n: torch.zeros_like(model.gauss_params[n]) for n in self.param_names()}
         for v in views:
-            for name, h in self.view_hessian(context, v, probes).items():
-                total[name] = total[name] + h if name in total else h
+            view = self.view_hessian(context, v, probes)
+            for name in total:
+                total[name].index_add_(0, view.ids, view.h[name])
         return total
