@@ -1,0 +1,57 @@
+"""Seconds per selection round for each selector on a real scene (the GPU figures in the README).
+
+Trains `ns-train hpgs` for `--steps` steps with one round at the last step, for each selector, and writes
+OUT/selector_speed.json with the round's seconds, the number of candidates and the Gaussian count.
+
+    python benchmarks/selector_speed.py --scene PATH --out DIR [--steps 2000] [--selectors hpgs fisher ...]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--scene", type=Path, required=True)
+    ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--steps", type=int, default=2000)
+    ap.add_argument("--downscale-factor", type=int, default=2)
+    ap.add_argument("--selectors", nargs="+", default=["random", "farthest", "hpgs", "fisher", "condorcet"])
+    ap.add_argument("--extra", default="", help="extra ns-train arguments")
+    args = ap.parse_args()
+    results = []
+    for sel in args.selectors:
+        cmd = [
+            sys.executable, "-m", "nerfstudio.scripts.train", "hpgs", "--data", str(args.scene),
+            "--output-dir", str(args.out / "runs"), "--experiment-name", "speed", "--timestamp", sel,
+            "--vis", "tensorboard", "--max-num-iterations", str(args.steps + 1), "--steps-per-save", str(10 * args.steps),
+            "--steps-per-eval-all-images", str(10 * args.steps), "--steps-per-eval-image", str(10 * args.steps),
+            "--pipeline.datamanager.select-every", str(args.steps), "--pipeline.datamanager.max-rounds", "1",
+            "--pipeline.datamanager.selector", sel,
+            "--pipeline.datamanager.dataparser.downscale-factor", str(args.downscale_factor), *args.extra.split(),
+        ]
+        start = time.perf_counter()
+        subprocess.run(cmd, check=True, capture_output=True)
+        log = json.loads((args.out / "runs" / "speed" / "hpgs" / sel / "selected_views.json").read_text())
+        ckpt = sorted((args.out / "runs" / "speed" / "hpgs" / sel / "nerfstudio_models").glob("*.ckpt"))[-1]
+        n = torch.load(ckpt, map_location="cpu", weights_only=True)["pipeline"]["_model.gauss_params.means"].shape[0]
+        r = log["rounds"][0]
+        row = {"selector": sel, "round_seconds": r["seconds"], "candidates": len(r["scores"]),
+               "active_before": r["num_active"] - len(r["chosen"]), "gaussians": int(n), "chosen": r["chosen"],
+               "wall_seconds": time.perf_counter() - start,
+               "device": torch.cuda.get_device_name(0) if torch.cuda.is_available() else "cpu"}
+        print(json.dumps(row), flush=True)
+        results.append(row)
+    (args.out / "selector_speed.json").write_text(json.dumps(results, indent=2))
+
+
+if __name__ == "__main__":
+    main()
