@@ -39,9 +39,16 @@ def _batched(pref, context: SelectionContext, views: Sequence[int], short_side: 
     side = _short_side(pref, short_side)
     for start in range(0, len(views), batch):
         chunk = list(views[start : start + batch])
-        images = [im.permute(2, 0, 1) for im in context.render(chunk, side)]
-        x = torch.cat([pref.preprocess(im[None]) for im in images])
-        outs.append(getattr(pref, fn)(x).float().cpu())
+        images = [pref.preprocess(im.permute(2, 0, 1)[None]) for im in context.render(chunk, side)]
+        if len({tuple(im.shape) for im in images}) > 1:  # mixed aspect ratios: one forward per image
+            outs += [getattr(pref, fn)(im).float().cpu() for im in images]
+            continue
+        x = torch.cat(images)
+        # Pad to a fixed batch: with cudnn.benchmark (nerfstudio sets it) every new shape is re-autotuned.
+        pad = batch - x.shape[0]
+        if pad > 0:
+            x = torch.cat([x, x[-1:].expand(pad, *x.shape[1:])])
+        outs.append(getattr(pref, fn)(x)[: len(chunk)].float().cpu())
     if not outs:
         raise SelectionError("no views to run the preference model on")
     return torch.cat(outs)
