@@ -268,15 +268,24 @@ class ActiveDatamanager(FullImageDatamanager):
         return path
 
     @torch.no_grad()
-    def render_views(self, model, indices: Sequence[int], short_side: Optional[int] = None) -> List[torch.Tensor]:
-        """Render training-split views with the current splat, in eval mode; each [H, W, 3] in [0, 1]."""
+    def render_views(self, model, indices: Sequence[int], short_side: Optional[int] = None, batch: int = 16) -> List[torch.Tensor]:
+        """Render training-split views with the current splat, in eval mode; each [H, W, 3] in [0, 1].
+
+        Views are rendered `batch` at a time in one rasterization call when the model can (`render_rgb_batch`)."""
+        cameras = self.train_dataset.cameras[torch.tensor([int(i) for i in indices], dtype=torch.long)]
+        if short_side is not None:
+            scale = short_side / torch.minimum(cameras.width, cameras.height).float()
+            cameras.rescale_output_resolution(scale)
         with eval_mode(model):
-            images = []
-            for i in indices:
-                camera = self.train_dataset.cameras[int(i) : int(i) + 1].to(model.device)
-                if short_side is not None:
-                    camera.rescale_output_resolution(short_side / float(min(camera.width.item(), camera.height.item())))
-                images.append(model.get_outputs_for_camera(camera)["rgb"].clamp(0, 1))
+            if not hasattr(model, "render_rgb_batch"):
+                return [model.get_outputs_for_camera(cameras[k : k + 1].to(model.device))["rgb"].clamp(0, 1) for k in range(len(indices))]
+            images: List[torch.Tensor] = []
+            for start in range(0, len(indices), batch):
+                chunk = cameras[start : start + batch]
+                if bool((chunk.width == chunk.width[0]).all()) and bool((chunk.height == chunk.height[0]).all()):
+                    images += list(model.render_rgb_batch(chunk))
+                else:
+                    images += [model.render_rgb_batch(chunk[k : k + 1])[0] for k in range(len(chunk))]
             return images
 
     def selection_context(self, step: int, model) -> SelectionContext:

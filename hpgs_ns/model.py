@@ -178,3 +178,27 @@ class HpgsSplatfactoModel(SplatfactoModel):
         if background.shape[0] == 3 and not self.training:
             background = background.expand(H, W, 3)
         return {"rgb": rgb.squeeze(0), "depth": depth, "accumulation": alpha.squeeze(0), "background": background}  # type: ignore
+
+    @torch.no_grad()
+    def render_rgb_batch(self, cameras: Cameras) -> torch.Tensor:
+        """Eval-mode RGB of several cameras of one size in a single rasterization call: [C, H, W, 3].
+
+        Same image as `get_outputs` in eval mode (fixed background, clamped), without depth; used for selection,
+        where one call per view would cost more in overhead than in rasterization."""
+        cameras = cameras.to(self.device)
+        W, H = int(cameras.width[0].item()), int(cameras.height[0].item())
+        if not (bool((cameras.width == W).all()) and bool((cameras.height == H).all())):
+            raise ValueError("render_rgb_batch needs cameras of one size")
+        colors = torch.cat((self.features_dc[:, None, :], self.features_rest), dim=1)
+        if self.config.sh_degree > 0:
+            sh_degree = min(self.step // self.config.sh_degree_interval, self.config.sh_degree)
+        else:
+            colors, sh_degree = torch.sigmoid(colors).squeeze(1), None
+        render, alpha, _ = self._rasterize(
+            means=self.means, quats=self.quats, scales=torch.exp(self.scales),
+            opacities=torch.sigmoid(self.opacities).squeeze(-1), colors=colors,
+            viewmats=get_viewmat(cameras.camera_to_worlds.reshape(-1, 3, 4)), Ks=cameras.get_intrinsics_matrices().reshape(-1, 3, 3),
+            width=W, height=H, packed=False, near_plane=0.01, far_plane=1e10, render_mode="RGB",
+            sh_degree=sh_degree, sparse_grad=False, absgrad=False, rasterize_mode=self.config.rasterize_mode,
+        )
+        return torch.clamp(render + (1 - alpha) * self.background_color.to(self.device), 0.0, 1.0)

@@ -51,6 +51,9 @@ class FisherSelectorConfig(InstantiateConfig):
     """`probe`: K Rademacher vector-Jacobian products per view. `exact`: one backward per pixel and channel."""
     include_rotations: bool = False
     """Also count the quaternions (FisherRF leaves them out)."""
+    train_batch: int = 8
+    """Active views rendered together for H_train (one backward per probe covers the whole batch; the cross-view
+    terms of the squared gradient have zero mean). 1 = one view at a time."""
     resolution_scale: float = 0.5
     """Render views at this fraction of the dataset resolution (FisherRF's information is dominated by coarse
     structure; halving the side quarters the cost)."""
@@ -86,14 +89,14 @@ def frustum_ids(model, camera, margin_sigmas: float = 3.0) -> torch.Tensor:
 
 
 def render_subset(model, camera, leaves: Dict[str, torch.Tensor], ids: torch.Tensor) -> torch.Tensor:
-    """RGB render [H, W, 3] of the Gaussians `ids`, differentiable w.r.t. the `leaves` (raw parameters of those
+    """RGB render [C, H, W, 3] (cameras of one size) of the Gaussians `ids`, differentiable w.r.t. the `leaves` (raw parameters of those
     Gaussians, as splatfacto stores them); the others come from the model, detached."""
     from nerfstudio.models.splatfacto import get_viewmat
 
     raw = {n: leaves[n] if n in leaves else model.gauss_params[n][ids].detach() for n in model.gauss_params.keys()}
     viewmat = get_viewmat(camera.camera_to_worlds).to(model.device)
     K = camera.get_intrinsics_matrices().to(model.device)
-    W, H = int(camera.width.item()), int(camera.height.item())
+    W, H = int(camera.width.reshape(-1)[0].item()), int(camera.height.reshape(-1)[0].item())
     colors = torch.cat((raw["features_dc"][:, None, :], raw["features_rest"]), dim=1)
     if model.config.sh_degree > 0:
         sh_degree = min(model.step // model.config.sh_degree_interval, model.config.sh_degree)
@@ -106,7 +109,7 @@ def render_subset(model, camera, leaves: Dict[str, torch.Tensor], ids: torch.Ten
         sh_degree=sh_degree, sparse_grad=False, absgrad=False, rasterize_mode=model.config.rasterize_mode,
     )
     background = model.background_color.to(model.device)
-    return (render + (1 - alpha) * background)[0]
+    return render + (1 - alpha) * background
 
 
 class FisherSelector:
@@ -135,6 +138,12 @@ class FisherSelector:
             return ViewHessian(ids, h)
         with torch.enable_grad():
             rgb = render_subset(model, camera, leaves, ids)
+        return ViewHessian(ids, self._probe(rgb, leaves, probes, context.generator))
+
+    def _probe(self, rgb: torch.Tensor, leaves: Dict[str, torch.Tensor], probes: int, generator) -> Dict[str, torch.Tensor]:
+        """diag(J^T J) of `rgb` w.r.t. `leaves`: exact (one backward per output) or by Rademacher probes."""
+        names = list(leaves)
+        h = {n: torch.zeros_like(t) for n, t in leaves.items()}
         params = [leaves[n] for n in names]
         if self.config.mode == "exact":
             flat = rgb.reshape(-1)
@@ -145,13 +154,13 @@ class FisherSelector:
                         h[n] += g.detach() ** 2
         else:
             for k in range(probes):
-                eps = (torch.randint(0, 2, rgb.shape, generator=context.generator) * 2 - 1).to(rgb)
+                eps = (torch.randint(0, 2, rgb.shape, generator=generator) * 2 - 1).to(rgb)
                 grads = torch.autograd.grad(rgb, params, grad_outputs=eps, retain_graph=k < probes - 1, allow_unused=True)
                 for n, g in zip(names, grads):
                     if g is not None:
                         h[n] += g.detach() ** 2
             h = {n: t / probes for n, t in h.items()}
-        return ViewHessian(ids, h)
+        return h
 
     def weights(self, h_train: Dict[str, torch.Tensor]) -> Dict[str, torch.Tensor]:
         """1 / (H_train + lambda) per parameter tensor, with lambda's relative floor."""
@@ -197,8 +206,29 @@ class FisherSelector:
         """H_train: the sum of diag(J^T J) over `views`, full size."""
         model = context.model
         total = {n: torch.zeros_like(model.gauss_params[n]) for n in self.param_names()}
-        for v in views:
-            view = self.view_hessian(context, v, probes)
-            for name in total:
-                total[name].index_add_(0, view.ids, view.h[name])
+        batch = 1 if self.config.mode == "exact" else max(self.config.train_batch, 1)
+        if batch == 1:
+            for v in views:
+                view = self.view_hessian(context, v, probes)
+                for name in total:
+                    total[name].index_add_(0, view.ids, view.h[name])
+            return total
+        views = list(views)
+        for start in range(0, len(views), batch):
+            cameras = context.cameras[torch.tensor(views[start : start + batch], dtype=torch.long)].to(model.device)
+            if self.config.resolution_scale != 1.0:
+                cameras.rescale_output_resolution(self.config.resolution_scale)
+            same_size = bool((cameras.width == cameras.width[0]).all()) and bool((cameras.height == cameras.height[0]).all())
+            if not same_size:
+                for v in views[start : start + batch]:
+                    view = self.view_hessian(context, v, probes)
+                    for name in total:
+                        total[name].index_add_(0, view.ids, view.h[name])
+                continue
+            leaves = {n: model.gauss_params[n].detach().requires_grad_(True) for n in self.param_names()}
+            ids = torch.arange(model.num_points, device=model.device)
+            with torch.enable_grad():
+                rgb = render_subset(model, cameras, leaves, ids)
+            for name, h in self._probe(rgb, leaves, probes, context.generator).items():
+                total[name] += h
         return total

@@ -6,9 +6,9 @@ the active views is picked: O(n) model calls. The median rather than the mean be
 the mean (the paper, Sec. 3.3). `median-distance` is what the authors' code does instead: for each candidate the
 median over active views of 1 - cos(f_candidate, f_active).
 
-Input recipe (the same for the preference model's training renders and here): render the view at a fixed
-short side (the model's input size, aspect kept), then the model's own preprocessing centre-crops and
-normalises. Rendering directly at that size costs (S / short side)^2 of a full render.
+Input recipe (the same for the preference model's training renders and here): the model sees images whose
+short side is its input size, aspect kept, no crop. Here views are rendered directly at that short side (cheaper
+than a full render followed by a resize), batched in one rasterization call per 16 views, under no_grad.
 """
 
 from __future__ import annotations
