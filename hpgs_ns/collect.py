@@ -103,13 +103,14 @@ def score_snapshots(run_dir: Path, render_dir: Path, save_short_side: Optional[i
     from hpgs_ns.metrics import lpips, psnr, ssim
 
     photos = ground_truth_images(run_dir)
+    device = "cuda" if torch.cuda.is_available() else "cpu"
     render_dir.mkdir(parents=True, exist_ok=True)
     rows = []
     files = sorted((run_dir / "snapshots").glob("step-*/*.png"))
     for path in track(files, description="scoring renders", console=CONSOLE):
         step = int(path.parent.name.split("-")[1])
-        render = load_rgb(path)
-        photo = load_rgb(photos[path.stem], size=(render.shape[1], render.shape[0]))
+        render = load_rgb(path).to(device)
+        photo = load_rgb(photos[path.stem], size=(render.shape[1], render.shape[0])).to(device)
         name = f"s{step:06d}_{path.stem}." + ("jpg" if save_short_side else "png")
         if save_short_side:
             with Image.open(path) as im:
