@@ -197,7 +197,7 @@ class HpgsSplatfactoModel(SplatfactoModel):
         render, alpha, _ = self._rasterize(
             means=self.means, quats=self.quats, scales=torch.exp(self.scales),
             opacities=torch.sigmoid(self.opacities).squeeze(-1), colors=colors,
-            viewmats=get_viewmat(cameras.camera_to_worlds.reshape(-1, 3, 4)), Ks=cameras.get_intrinsics_matrices().reshape(-1, 3, 3),
+            viewmats=get_viewmat(cameras.camera_to_worlds.reshape(-1, 3, 4)).to(self.device), Ks=cameras.get_intrinsics_matrices().reshape(-1, 3, 3).to(self.device),
             width=W, height=H, packed=False, near_plane=0.01, far_plane=1e10, render_mode="RGB",
             sh_degree=sh_degree, sparse_grad=False, absgrad=False, rasterize_mode=self.config.rasterize_mode,
         )
