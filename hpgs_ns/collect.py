@@ -79,7 +79,8 @@ class Collect:
         if self.downscale_factor is not None:
             cmd += ["--pipeline.datamanager.dataparser.downscale-factor", str(self.downscale_factor)]
         run_dir = run_root / "collect" / "hpgs" / f"seed{self.seed}"
-        if not (run_dir / "snapshots").is_dir():
+        final = run_dir / "snapshots" / f"step-{self.steps - self.steps % self.every:06d}"
+        if not final.is_dir():  # not finished (or never started): train from scratch
             CONSOLE.print(f"[bold]Training[/bold]: {shlex.join(cmd)}")
             subprocess.run(cmd, check=True)
         rows = score_snapshots(run_dir, self.out / "renders", self.save_short_side)
