@@ -1,0 +1,49 @@
+"""`hpgs bench` on a tiny synthetic scene with the CPU rasterizer: the pipeline and the JSON schema, not numbers."""
+
+from __future__ import annotations
+
+import json
+import math
+
+from hpgs_ns.bench import Bench, fisherrf_schedule, load_results, markdown_table
+
+KEYS = {
+    "scene", "protocol", "selector", "seed", "steps", "test", "psnr_per_round", "wall_seconds", "selection_seconds",
+    "peak_memory_mb", "initial_views", "chosen_views", "command", "num_views_final", "device",
+}
+
+
+def test_fisherrf_schedule_is_train_size_times_100():
+    assert fisherrf_schedule()[:6] == (400, 900, 1500, 2200, 3000, 3900)
+    assert fisherrf_schedule()[-1] == 18400 and len(fisherrf_schedule()) == 16
+
+
+def test_tiny_bench_writes_results_table_plots_and_resumes(tiny_scene, tmp_path):
+    bench = Bench(
+        scenes=[tiny_scene], out=tmp_path / "bench", selectors=["farthest"], seeds=[0], protocols=["hpgs"],
+        step_scale=0.002, initial_views=6, rasterizer="cpu",
+        extra_args="--pipeline.model.num-downscales 0 --pipeline.model.warmup-length 1000",
+    )
+    bench.main()
+    rows = load_results(bench.out)
+    assert sorted(r["selector"] for r in rows) == ["all", "farthest", "initial"]
+    for r in rows:
+        assert KEYS <= set(r), KEYS - set(r)
+        assert all(math.isfinite(r["test"][k]) for k in ("psnr", "ssim", "lpips"))
+        assert "ns-train" in r["command"] or "nerfstudio.scripts.train" in r["command"]
+    by = {r["selector"]: r for r in rows}
+    assert by["initial"]["num_views_final"] == 6 and by["initial"]["chosen_views"] == []
+    assert by["all"]["num_views_final"] == 35
+    # step_scale 0.002: 30 steps, a round every 4 steps, 7 rounds -> 13 views, PSNR recorded before each round
+    assert by["farthest"]["num_views_final"] == 13 and len(by["farthest"]["chosen_views"]) == 7
+    assert [p["num_views_before"] for p in by["farthest"]["psnr_per_round"]] == list(range(6, 13))
+    assert set(by["farthest"]["chosen_views"]).isdisjoint(by["farthest"]["initial_views"])
+    table = (bench.out / "table.md").read_text()
+    assert table == markdown_table(rows) and "| farthest |" in table
+    assert (bench.out / f"{tiny_scene.name}-hpgs.png").stat().st_size > 10_000
+
+    # A second invocation finds every run done and only rebuilds the report.
+    before = {p: p.stat().st_mtime for p in bench.out.glob("*/*/*/seed*.json")}
+    bench.main()
+    assert {p: p.stat().st_mtime for p in bench.out.glob("*/*/*/seed*.json")} == before
+    assert json.loads(next(iter(before)).read_text())["seed"] == 0
