@@ -336,6 +336,7 @@ class ActiveDatamanager(FullImageDatamanager):
         writer.put_scalar("selection/seconds", seconds, step)
         writer.put_scalar("selection/num_active", len(self.active), step)
         self._log_chosen_render(model, selection.indices[0], step)
+        self._log_scores_plot(selection, step)
         self.write_log()
         return selection
 
@@ -359,6 +360,29 @@ class ActiveDatamanager(FullImageDatamanager):
             writer.put_image("selection/chosen_view", image.cpu(), step)
         except Exception as err:  # logging must never stop training
             CONSOLE.print(f"[yellow]could not log the chosen view's render: {err}")
+
+    def _log_scores_plot(self, selection: Selection, step: int) -> None:
+        """Candidates' scores as an image in the writer (nerfstudio's writer has no histogram)."""
+        if len(set(selection.scores.values())) < 2:
+            return
+        try:
+            import matplotlib
+
+            matplotlib.use("Agg")
+            import matplotlib.pyplot as plt
+
+            items = sorted(selection.scores.items(), key=lambda kv: -kv[1])
+            fig, ax = plt.subplots(figsize=(6, 2.4), dpi=80)
+            ax.bar(range(len(items)), [v for _, v in items],
+                   color=["C3" if i in selection.indices else "C0" for i, _ in items], width=1.0)
+            ax.set(xlabel="candidates (sorted)", ylabel="score", title=f"{self.config.selector} scores, step {step}")
+            fig.tight_layout()
+            fig.canvas.draw()
+            image = torch.from_numpy(np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()).float() / 255
+            plt.close(fig)
+            writer.put_image("selection/scores", image, step)
+        except Exception as err:  # logging must never stop training
+            CONSOLE.print(f"[yellow]could not plot the selection scores: {err}")
 
     def write_log(self) -> Optional[Path]:
         """Write `selected_views.json` in the run directory (temp file, then rename)."""
