@@ -33,7 +33,7 @@ class Demo:
     layout: str = "ring"
     """Synthetic scene layout."""
     steps: Optional[int] = None
-    """Training steps; default 2000 on CPU (select every 250), 15000 on GPU (select every 2000)."""
+    """Training steps; default 800 on CPU (select every 100), 15000 on GPU (select every 2000)."""
     num_initial_views: int = 6
     """Views active at step 0."""
     seed: int = 0
@@ -49,7 +49,7 @@ class Demo:
             CONSOLE.print(f"[bold]Generating the synthetic scene[/bold] -> {scene}")
             make_scene(scene, layout=self.layout, seed=self.seed)
         gpu = torch.cuda.is_available() and self.rasterizer != "cpu"
-        steps = self.steps or (15000 if gpu else 2000)
+        steps = self.steps or (15000 if gpu else 800)
         every = max(steps // 8, 1) if self.steps or not gpu else 2000
         run_name = f"{self.selector}-seed{self.seed}"
         cmd = train_command(scene, self.out, run_name, self.selector, steps, every, self.num_initial_views, self.seed, self.rasterizer)
