@@ -97,13 +97,3 @@ def eval_mode(model):
         if info is not None:
             model.info = info
 
-
-def render_with_grad(model, cameras: Cameras, index: int, resolution_scale: float = 1.0) -> torch.Tensor:
-    """Render training view `index` with autograd on: [H, W, 3]. Call inside `eval_mode`.
-
-    Goes through `model.get_outputs` (not `get_outputs_for_camera`, which disables grad)."""
-    camera = cameras[int(index) : int(index) + 1].to(model.device)
-    if resolution_scale != 1.0:
-        camera.rescale_output_resolution(resolution_scale)
-    with torch.enable_grad():
-        return model.get_outputs(camera)["rgb"]

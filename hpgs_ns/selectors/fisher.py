@@ -119,7 +119,6 @@ class FisherSelector:
         self.config = config
         if config.probes < 1 or config.train_probe_factor < 1:
             raise SelectionError("--pipeline.datamanager.fisher.probes and train-probe-factor must be >= 1")
-        self.last_stats: Dict[str, float] = {}
 
     def param_names(self) -> List[str]:
         return list(FISHER_PARAMS) + (["quats"] if self.config.include_rotations else [])
