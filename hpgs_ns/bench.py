@@ -334,4 +334,60 @@ def make_plots(rows: List[dict], out: Path) -> List[Path]:
         fig.savefig(path, dpi=110)
         plt.close(fig)
         paths.append(path)
+        map_path = camera_map(group, out / f"{scene}-{protocol}-cameras.png")
+        if map_path is not None:
+            paths.append(map_path)
     return paths
+
+
+def camera_centres(scene: Path) -> Optional[Dict[str, Tuple[float, float]]]:
+    """Top-down 2D positions of a scene's cameras by image name: COLMAP centres projected on the plane of their
+    two principal directions (the capture's ground plane for orbit-like captures)."""
+    import numpy as np
+    from nerfstudio.data.utils import colmap_parsing_utils as colmap_utils
+
+    model = scene / "sparse" / "0"
+    if (model / "images.bin").exists():
+        images = colmap_utils.read_images_binary(model / "images.bin")
+    elif (model / "images.txt").exists():
+        images = colmap_utils.read_images_text(model / "images.txt")
+    else:
+        return None
+    names = [im.name for im in images.values()]
+    centres = np.stack([-colmap_utils.qvec2rotmat(im.qvec).T @ im.tvec for im in images.values()])
+    centred = centres - centres.mean(axis=0)
+    _, _, vt = np.linalg.svd(centred, full_matrices=False)
+    xy = centred @ vt[:2].T
+    return {n: (float(x), float(y)) for n, (x, y) in zip(names, xy)}
+
+
+def camera_map(group: List[dict], path: Path) -> Optional[Path]:
+    """One panel per selector (first seed): all cameras, the initial views, and the chosen ones numbered."""
+    import matplotlib.pyplot as plt
+
+    runs = [r for r in sorted(group, key=lambda r: r["seed"]) if r["selector"] not in REFERENCES and r["chosen_views"]]
+    if not runs:
+        return None
+    data = shlex.split(runs[0]["command"])
+    scene = Path(data[data.index("--data") + 1]) if "--data" in data else None
+    pos = camera_centres(scene) if scene is not None and scene.is_dir() else None
+    if not pos:
+        return None
+    first = {}
+    for r in runs:
+        first.setdefault(r["selector"], r)
+    fig, axes = plt.subplots(1, len(first), figsize=(3.6 * len(first), 3.6), squeeze=False)
+    all_xy = list(pos.values())
+    for ax, (sel, r) in zip(axes[0], sorted(first.items())):
+        ax.scatter(*zip(*all_xy), s=6, c="lightgrey", label="withheld / test")
+        ax.scatter(*zip(*[pos[n] for n in r["initial_views"] if n in pos]), s=12, c="C0", label="initial")
+        for k, name in enumerate(r["chosen_views"], 1):
+            if name in pos:
+                ax.scatter(*pos[name], s=30, c="C3")
+                ax.annotate(str(k), pos[name], fontsize=8, xytext=(3, 3), textcoords="offset points")
+        ax.set(title=f"{sel} (seed {r['seed']})", xticks=[], yticks=[], aspect="equal")
+    axes[0][0].legend(fontsize=7, loc="lower left")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

@@ -41,6 +41,7 @@ def test_tiny_bench_writes_results_table_plots_and_resumes(tiny_scene, tmp_path)
     table = (bench.out / "table.md").read_text()
     assert table == markdown_table(rows) and "| farthest |" in table
     assert (bench.out / f"{tiny_scene.name}-hpgs.png").stat().st_size > 10_000
+    assert (bench.out / f"{tiny_scene.name}-hpgs-cameras.png").stat().st_size > 10_000
 
     # A second invocation finds every run done and only rebuilds the report.
     before = {p: p.stat().st_mtime for p in bench.out.glob("*/*/*/seed*.json")}
