@@ -52,7 +52,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-__all__ = ["rasterization", "UnsupportedArgumentError"]
+__all__ = ["rasterization", "rasterize_pairs", "UnsupportedArgumentError"]
 
 ALPHA_MAX = 0.999  # alpha clamp (gsplat: min(0.999f, ...))
 ALPHA_MIN = 1.0 / 255.0  # contributions below this alpha are skipped
@@ -555,6 +555,32 @@ def _guard(x: Optional[Tensor]) -> Optional[Tensor]:
 
 def _row_finite(x: Tensor, n_lead: int = 1) -> Tensor:
     return torch.isfinite(x).reshape(x.shape[:n_lead] + (-1,)).all(-1)
+
+
+def rasterize_pairs(
+    means2d: Tensor,  # [nnz, 2]
+    conics: Tensor,  # [nnz, 3]
+    colors: Tensor,  # [nnz, D]
+    opacities: Tensor,  # [nnz]
+    radii: Tensor,  # [nnz] int
+    depths: Tensor,  # [nnz]
+    camera_ids: Tensor,  # [nnz] int64
+    n_cameras: int,
+    width: int,
+    height: int,
+    tile_size: int = 16,
+    backgrounds: Optional[Tensor] = None,  # [C, D]
+) -> Tuple[Tensor, Tensor]:
+    """Composite already projected, packed (camera, Gaussian) pairs: the twin of gsplat's `isect_tiles` +
+    `isect_offset_encode` + `rasterize_to_pixels(..., packed=True)`.
+
+    Differentiable w.r.t. means2d, conics, colors and opacities, each pair separately (no sum over cameras).
+    Returns render_colors [C, H, W, D] and render_alphas [C, H, W, 1]."""
+    plan = _Plan(means2d.detach(), radii.int(), depths.detach(), camera_ids.long(), n_cameras, width, height, tile_size)
+    render, T_final = _RasterizeToPixels.apply(means2d, None, conics, colors, opacities, plan, False)
+    if backgrounds is not None:
+        render = render + T_final * backgrounds[:, None, None, :]
+    return render, 1.0 - T_final
 
 
 # ----------------------------------------------------------------------------------------------------------------

@@ -15,19 +15,24 @@ g = J^T eps satisfies E[g * g] = diag(J^T J) exactly. Its variance is large, and
 noisy small H_train into a huge weight, so H_train gets `train_probe_factor` times more probes per view (and it
 sums over all active views), and lambda_i = reg_lambda + relative_floor * mean(H_train over that parameter
 tensor). `exact` mode back-propagates every pixel-channel (only for tiny images: tests check `probe` against it).
-H_train is recomputed every round because densification renumbers the Gaussians. Gaussians outside a view's
-frustum get zero gradient and cost nothing in the rasterizer's backward.
+
+Views are processed `view_batch` at a time through `hpgs_ns.pair_render`: each (view, Gaussian) pair has its own
+copy of the parameters, so one backward pass per probe gives every view of the batch its own gradient, and only
+the Gaussians whose footprint reaches a view are gathered for it (frustum culling). H_train is recomputed every
+round because densification renumbers the Gaussians.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Dict, List, Literal, Sequence, Type
+from typing import Dict, Iterator, List, Literal, Sequence, Tuple, Type
 
 import torch
 from nerfstudio.configs.base_config import InstantiateConfig
 
+from hpgs_ns.model import resolve_rasterizer
+from hpgs_ns.pair_render import PairRender, render_pairs
 from hpgs_ns.selectors.base import Selection, SelectionContext, SelectionError, eval_mode
 
 FISHER_PARAMS = ("means", "features_dc", "features_rest", "scales", "opacities")
@@ -51,65 +56,25 @@ class FisherSelectorConfig(InstantiateConfig):
     """`probe`: K Rademacher vector-Jacobian products per view. `exact`: one backward per pixel and channel."""
     include_rotations: bool = False
     """Also count the quaternions (FisherRF leaves them out)."""
-    train_batch: int = 8
-    """Active views rendered together for H_train (one backward per probe covers the whole batch; the cross-view
-    terms of the squared gradient have zero mean). 1 = one view at a time."""
+    view_batch: int = 32
+    """Views rendered and differentiated together (each with its own copy of its visible Gaussians, so memory
+    grows with it; lower it if GPU memory runs out)."""
     resolution_scale: float = 0.5
     """Render views at this fraction of the dataset resolution (FisherRF's information is dominated by coarse
     structure; halving the side quarters the cost)."""
 
 
 @dataclass
-class ViewHessian:
-    """diag(J^T J) of one view, stored only for the Gaussians inside its frustum."""
+class ViewBatch:
+    """Views of one image size, with their cameras in the rasterizer's form."""
 
-    ids: torch.Tensor
-    """[M] indices of the Gaussians that can touch the view."""
-    h: Dict[str, torch.Tensor]
-    """Per parameter tensor, [M, ...] entries of the diagonal for those Gaussians."""
-
-
-def frustum_ids(model, camera, margin_sigmas: float = 3.0) -> torch.Tensor:
-    """Indices of Gaussians whose 3-sigma extent can reach the image (in front of the near plane)."""
-    from nerfstudio.models.splatfacto import get_viewmat
-
-    with torch.no_grad():
-        viewmat = get_viewmat(camera.camera_to_worlds)[0].to(model.device)
-        K = camera.get_intrinsics_matrices()[0].to(model.device)
-        W, H = int(camera.width.item()), int(camera.height.item())
-        cam = model.means @ viewmat[:3, :3].T + viewmat[:3, 3]
-        z = cam[:, 2]
-        front = z > 0.01
-        zc = z.clamp_min(0.01)
-        u = K[0, 0] * cam[:, 0] / zc + K[0, 2]
-        v = K[1, 1] * cam[:, 1] / zc + K[1, 2]
-        r = margin_sigmas * torch.exp(model.scales).amax(dim=-1) * K[0, 0] / zc
-        inside = (u + r > 0) & (u - r < W) & (v + r > 0) & (v - r < H)
-        return torch.nonzero(front & inside).squeeze(-1)
-
-
-def render_subset(model, camera, leaves: Dict[str, torch.Tensor], ids: torch.Tensor) -> torch.Tensor:
-    """RGB render [C, H, W, 3] (cameras of one size) of the Gaussians `ids`, differentiable w.r.t. the `leaves` (raw parameters of those
-    Gaussians, as splatfacto stores them); the others come from the model, detached."""
-    from nerfstudio.models.splatfacto import get_viewmat
-
-    raw = {n: leaves[n] if n in leaves else model.gauss_params[n][ids].detach() for n in model.gauss_params.keys()}
-    viewmat = get_viewmat(camera.camera_to_worlds).to(model.device)
-    K = camera.get_intrinsics_matrices().to(model.device)
-    W, H = int(camera.width.reshape(-1)[0].item()), int(camera.height.reshape(-1)[0].item())
-    colors = torch.cat((raw["features_dc"][:, None, :], raw["features_rest"]), dim=1)
-    if model.config.sh_degree > 0:
-        sh_degree = min(model.step // model.config.sh_degree_interval, model.config.sh_degree)
-    else:
-        colors, sh_degree = torch.sigmoid(colors).squeeze(1), None
-    render, alpha, _ = model._rasterize(
-        means=raw["means"], quats=raw["quats"], scales=torch.exp(raw["scales"]),
-        opacities=torch.sigmoid(raw["opacities"]).squeeze(-1), colors=colors, viewmats=viewmat, Ks=K,
-        width=W, height=H, packed=False, near_plane=0.01, far_plane=1e10, render_mode="RGB",
-        sh_degree=sh_degree, sparse_grad=False, absgrad=False, rasterize_mode=model.config.rasterize_mode,
-    )
-    background = model.background_color.to(model.device)
-    return render + (1 - alpha) * background
+    views: List[int]
+    viewmats: torch.Tensor
+    """[C, 4, 4] world-to-camera."""
+    Ks: torch.Tensor
+    """[C, 3, 3] intrinsics at the rendered size."""
+    width: int
+    height: int
 
 
 class FisherSelector:
@@ -117,49 +82,96 @@ class FisherSelector:
 
     def __init__(self, config: FisherSelectorConfig) -> None:
         self.config = config
-        if config.probes < 1 or config.train_probe_factor < 1:
-            raise SelectionError("--pipeline.datamanager.fisher.probes and train-probe-factor must be >= 1")
+        if config.probes < 1 or config.train_probe_factor < 1 or config.view_batch < 1:
+            raise SelectionError("--pipeline.datamanager.fisher.probes, train-probe-factor and view-batch must be >= 1")
+        if not config.resolution_scale > 0:
+            raise SelectionError("--pipeline.datamanager.fisher.resolution-scale must be > 0")
 
     def param_names(self) -> List[str]:
         return list(FISHER_PARAMS) + (["quats"] if self.config.include_rotations else [])
 
-    def view_hessian(self, context: SelectionContext, index: int, probes: int) -> ViewHessian:
-        """diag(J^T J) of one view (probe estimate or exact), for the Gaussians in its frustum."""
-        model = context.model
-        camera = context.cameras[int(index) : int(index) + 1].to(model.device)
-        if self.config.resolution_scale != 1.0:
-            camera.rescale_output_resolution(self.config.resolution_scale)
-        ids = frustum_ids(model, camera)
-        names = self.param_names()
-        leaves = {n: model.gauss_params[n][ids].detach().requires_grad_(True) for n in names}
-        h = {n: torch.zeros_like(t) for n, t in leaves.items()}
-        if ids.numel() == 0:
-            return ViewHessian(ids, h)
-        with torch.enable_grad():
-            rgb = render_subset(model, camera, leaves, ids)
-        return ViewHessian(ids, self._probe(rgb, leaves, probes, context.generator))
+    # ---- batches of views ----------------------------------------------------------------------------------
 
-    def _probe(self, rgb: torch.Tensor, leaves: Dict[str, torch.Tensor], probes: int, generator) -> Dict[str, torch.Tensor]:
-        """diag(J^T J) of `rgb` w.r.t. `leaves`: exact (one backward per output) or by Rademacher probes."""
-        names = list(leaves)
-        h = {n: torch.zeros_like(t) for n, t in leaves.items()}
-        params = [leaves[n] for n in names]
+    def batches(self, context: SelectionContext, views: Sequence[int]) -> Iterator[ViewBatch]:
+        """`views` grouped by rendered size, at most `view_batch` per group."""
+        from nerfstudio.models.splatfacto import get_viewmat
+
+        device = torch.device(context.model.device)
+        cameras = context.cameras[torch.tensor([int(v) for v in views], dtype=torch.long)]
+        if self.config.resolution_scale != 1.0:
+            cameras.rescale_output_resolution(self.config.resolution_scale)
+        sizes: Dict[Tuple[int, int], List[int]] = {}
+        for k in range(len(views)):
+            sizes.setdefault((int(cameras.width[k]), int(cameras.height[k])), []).append(k)
+        for (W, H), rows in sizes.items():
+            for start in range(0, len(rows), self.config.view_batch):
+                chunk = torch.tensor(rows[start : start + self.config.view_batch], dtype=torch.long)
+                cams = cameras[chunk]
+                yield ViewBatch(
+                    views=[int(views[k]) for k in chunk],
+                    viewmats=get_viewmat(cams.camera_to_worlds.reshape(-1, 3, 4)).to(device),
+                    Ks=cams.get_intrinsics_matrices().reshape(-1, 3, 3).to(device),
+                    width=W,
+                    height=H,
+                )
+
+    def render(self, context: SelectionContext, batch: ViewBatch) -> PairRender:
+        backend = resolve_rasterizer(getattr(context.model.config, "rasterizer", "auto"))
+        with torch.enable_grad():
+            return render_pairs(context.model, batch.viewmats, batch.Ks, batch.width, batch.height, self.param_names(), backend)
+
+    def pair_gradients(self, pr: PairRender, probes: int, generator: torch.Generator) -> Iterator[Tuple[Dict[str, torch.Tensor], float]]:
+        """(gradient of every pair, weight) for each probe (or each pixel-channel in `exact` mode): the weighted
+        sum of the squared gradients over the yields is each view's diag(J^T J), pair by pair."""
+        names = self.param_names()
+        leaves = [pr.leaves[n] for n in names]
+        if pr.camera_ids.numel() == 0:
+            return
         if self.config.mode == "exact":
-            flat = rgb.reshape(-1)
-            for k in range(flat.numel()):
-                grads = torch.autograd.grad(flat[k], params, retain_graph=True, allow_unused=True)
-                for n, g in zip(names, grads):
-                    if g is not None:
-                        h[n] += g.detach() ** 2
-        else:
-            for k in range(probes):
-                eps = (torch.randint(0, 2, rgb.shape, generator=generator) * 2 - 1).to(rgb)
-                grads = torch.autograd.grad(rgb, params, grad_outputs=eps, retain_graph=k < probes - 1, allow_unused=True)
-                for n, g in zip(names, grads):
-                    if g is not None:
-                        h[n] += g.detach() ** 2
-            h = {n: t / probes for n, t in h.items()}
-        return h
+            flat = pr.image.reshape(pr.image.shape[0], -1)
+            for k in range(flat.shape[1]):
+                # Pixel k of every view at once: the pairs keep the views' gradients apart.
+                grads = torch.autograd.grad(flat[:, k].sum(), leaves, retain_graph=k < flat.shape[1] - 1, allow_unused=True)
+                yield self._named(names, grads, leaves), 1.0
+            return
+        for k in range(probes):
+            eps = torch.randint(0, 2, pr.image.shape, generator=generator, device=pr.image.device, dtype=torch.int8)
+            eps = eps.to(pr.image.dtype).mul_(2).sub_(1)
+            grads = torch.autograd.grad(pr.image, leaves, grad_outputs=eps, retain_graph=k < probes - 1, allow_unused=True)
+            yield self._named(names, grads, leaves), 1.0 / probes
+
+    @staticmethod
+    def _named(names, grads, leaves) -> Dict[str, torch.Tensor]:
+        return {n: (g if g is not None else torch.zeros_like(t)) for n, g, t in zip(names, grads, leaves)}
+
+    # ---- the two quantities ----------------------------------------------------------------------------------
+
+    def diag_hessian(self, context: SelectionContext, views: Sequence[int], probes: int, generator: torch.Generator) -> Dict[str, torch.Tensor]:
+        """sum over `views` of diag(J_v^T J_v), full size (one entry per Gaussian parameter)."""
+        model = context.model
+        total = {n: torch.zeros_like(model.gauss_params[n]).detach() for n in self.param_names()}
+        for batch in self.batches(context, views):
+            pr = self.render(context, batch)
+            for grads, weight in self.pair_gradients(pr, probes, generator):
+                for n, g in grads.items():
+                    total[n].index_add_(0, pr.gaussian_ids, g.detach().square() * weight)
+        return total
+
+    def view_scores(self, context: SelectionContext, views: Sequence[int], weights: Dict[str, torch.Tensor], generator: torch.Generator) -> Dict[int, float]:
+        """score(v) = sum_i diag(J_v^T J_v)[i] * weights[i] for each of `views`."""
+        scores: Dict[int, float] = {}
+        for batch in self.batches(context, views):
+            pr = self.render(context, batch)
+            gids = pr.gaussian_ids
+            w = {n: weights[n][gids] for n in weights}
+            per_pair = torch.zeros(gids.shape[0], dtype=pr.image.dtype, device=pr.image.device)
+            for grads, weight in self.pair_gradients(pr, self.config.probes, generator):
+                for n, g in grads.items():
+                    per_pair += (g.detach().square() * w[n]).flatten(1).sum(1) * weight
+            per_view = torch.zeros(len(batch.views), dtype=torch.float64, device=per_pair.device)
+            per_view.index_add_(0, pr.camera_ids, per_pair.double())
+            scores.update({v: float(s) for v, s in zip(batch.views, per_view.tolist())})
+        return scores
 
     def weights(self, h_train: Dict[str, torch.Tensor]) -> Dict[str, torch.Tensor]:
         """1 / (H_train + lambda) per parameter tensor, with lambda's relative floor."""
@@ -169,65 +181,33 @@ class FisherSelector:
             out[name] = 1.0 / (h + floor)
         return out
 
-    @staticmethod
-    def score(view: ViewHessian, weights: Dict[str, torch.Tensor]) -> float:
-        return float(sum((view.h[n] * weights[n][view.ids]).sum() for n in view.h))
+    # ---- selection -------------------------------------------------------------------------------------------
 
     def select(self, context: SelectionContext) -> Selection:
-        train_probes = self.config.probes * self.config.train_probe_factor
-        picked: List[int] = []
-        scores: Dict[int, float] = {}
-        with eval_mode(context.model):
-            # Recomputed every round: densification renumbers the Gaussians.
-            h_train = self.train_hessian(context, context.active, train_probes)
-            for _ in range(context.num_to_pick):
-                weights = self.weights(h_train)
-                best, best_score, best_view = -1, -math.inf, None
-                # One pass over the pool keeps only the running best's Hessian (memory stays O(#params)).
-                for c in context.candidates:
-                    if c in picked:
-                        continue
-                    view = self.view_hessian(context, c, self.config.probes)
-                    s = self.score(view, weights)
-                    if not math.isfinite(s):
-                        raise SelectionError(f"fisher score of view {context.image_names[c]} is not finite")
-                    if not picked:
-                        scores[c] = s
-                    if s > best_score:
-                        best, best_score, best_view = c, s, view
-                picked.append(best)
-                # Greedy batch: the pick's information joins the training side before the next pick.
-                for name in h_train:
-                    h_train[name].index_add_(0, best_view.ids, best_view.h[name])
-        return Selection(indices=picked, scores=scores)
-
-    def train_hessian(self, context: SelectionContext, views: Sequence[int], probes: int) -> Dict[str, torch.Tensor]:
-        """H_train: the sum of diag(J^T J) over `views`, full size."""
         model = context.model
-        total = {n: torch.zeros_like(model.gauss_params[n]) for n in self.param_names()}
-        batch = 1 if self.config.mode == "exact" else max(self.config.train_batch, 1)
-        if batch == 1:
-            for v in views:
-                view = self.view_hessian(context, v, probes)
-                for name in total:
-                    total[name].index_add_(0, view.ids, view.h[name])
-            return total
-        views = list(views)
-        for start in range(0, len(views), batch):
-            cameras = context.cameras[torch.tensor(views[start : start + batch], dtype=torch.long)].to(model.device)
-            if self.config.resolution_scale != 1.0:
-                cameras.rescale_output_resolution(self.config.resolution_scale)
-            same_size = bool((cameras.width == cameras.width[0]).all()) and bool((cameras.height == cameras.height[0]).all())
-            if not same_size:
-                for v in views[start : start + batch]:
-                    view = self.view_hessian(context, v, probes)
-                    for name in total:
-                        total[name].index_add_(0, view.ids, view.h[name])
-                continue
-            leaves = {n: model.gauss_params[n].detach().requires_grad_(True) for n in self.param_names()}
-            ids = torch.arange(model.num_points, device=model.device)
-            with torch.enable_grad():
-                rgb = render_subset(model, cameras, leaves, ids)
-            for name, h in self._probe(rgb, leaves, probes, context.generator).items():
-                total[name] += h
-        return total
+        # Probes are drawn on the model's device (a CPU generator would ship every probe image to the GPU),
+        # seeded from the round's generator so a resumed run makes the same choices.
+        generator = torch.Generator(device=torch.device(model.device))
+        generator.manual_seed(int(torch.randint(0, 2**62, (1,), generator=context.generator)))
+        picked: List[int] = []
+        first_scores: Dict[int, float] = {}
+        with eval_mode(model):
+            # Recomputed every round: densification renumbers the Gaussians.
+            h_train = self.diag_hessian(context, context.active, self.config.probes * self.config.train_probe_factor, generator)
+            for _ in range(context.num_to_pick):
+                pool = [c for c in context.candidates if c not in picked]
+                scores = self.view_scores(context, pool, self.weights(h_train), generator)
+                bad = [context.image_names[c] for c, s in scores.items() if not math.isfinite(s)]
+                if bad:
+                    raise SelectionError(f"fisher score of view {bad[0]} is not finite (the splat has NaN parameters?)")
+                best = max(pool, key=lambda c: scores[c])
+                if not picked:
+                    first_scores = scores
+                picked.append(best)
+                if len(picked) < context.num_to_pick:
+                    # Greedy batch: the pick's information joins the training side before the next pick.
+                    h_pick = self.diag_hessian(context, [best], self.config.probes * self.config.train_probe_factor, generator)
+                    for name in h_train:
+                        h_train[name] += h_pick[name]
+        return Selection(indices=picked, scores=first_scores)
+
