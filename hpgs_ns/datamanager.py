@@ -326,6 +326,7 @@ class ActiveDatamanager(FullImageDatamanager):
             "num_active": len(self.active),
             "test_psnr_before": test_psnr,
             "scores": {self.image_names[i]: float(s) for i, s in selection.scores.items()},
+            "work": {k: float(v) for k, v in selection.work.items()},
         }
         self.history.append(record)
         self.train_unseen_cameras = self.sample_train_cameras()

@@ -59,6 +59,9 @@ class Selection:
     """Chosen candidate indices, in the order they were picked."""
     scores: Dict[int, float] = field(default_factory=dict)
     """Score of every candidate looked at (higher = more wanted), for logging."""
+    work: Dict[str, float] = field(default_factory=dict)
+    """What the round computed and what it skipped (counts for the round log and the benchmark), e.g.
+    `pixels_rendered` vs `pixels_full_resolution`, or `pairs_differentiated` vs `pairs_unculled`."""
 
 
 class Selector(Protocol):

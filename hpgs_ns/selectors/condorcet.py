@@ -60,7 +60,8 @@ class CondorcetSelector:
         if cap and len(pool) > cap:
             keep = torch.randperm(len(pool), generator=context.generator)[:cap].sort().values.tolist()
             pool = [pool[i] for i in keep]
-        s = render_scores(self.pref, context, pool, self.config.render_short_side, self.config.batch_size).double()
+        work: dict = {}
+        s = render_scores(self.pref, context, pool, self.config.render_short_side, self.config.batch_size, work).double()
         if not torch.isfinite(s).all():
             raise SelectionError("condorcet: non-finite preference score (NaN in a render or in the model)")
         wins = duel_wins(s)
@@ -68,4 +69,5 @@ class CondorcetSelector:
         # Most duels judged worse first; the BT score breaks ties in win counts.
         order = sorted(range(len(pool)), key=lambda i: (float(wins[i]), float(s[i])), reverse=True)
         picked = [pool[i] for i in order[: context.num_to_pick]]
-        return Selection(indices=picked, scores={pool[i]: float(wins[i]) for i in range(len(pool))})
+        work["duels"] = self.last_num_duels
+        return Selection(indices=picked, scores={pool[i]: float(wins[i]) for i in range(len(pool))}, work=work)

@@ -82,6 +82,7 @@ class FisherSelector:
 
     def __init__(self, config: FisherSelectorConfig) -> None:
         self.config = config
+        self.work: Dict[str, float] = {}
         if config.probes < 1 or config.train_probe_factor < 1 or config.view_batch < 1:
             raise SelectionError("--pipeline.datamanager.fisher.probes, train-probe-factor and view-batch must be >= 1")
         if not config.resolution_scale > 0:
@@ -118,7 +119,17 @@ class FisherSelector:
     def render(self, context: SelectionContext, batch: ViewBatch) -> PairRender:
         backend = resolve_rasterizer(getattr(context.model.config, "rasterizer", "auto"))
         with torch.enable_grad():
-            return render_pairs(context.model, batch.viewmats, batch.Ks, batch.width, batch.height, self.param_names(), backend)
+            pr = render_pairs(context.model, batch.viewmats, batch.Ks, batch.width, batch.height, self.param_names(), backend)
+        full = context.cameras[torch.tensor(batch.views, dtype=torch.long)]
+        self._count("views_rendered", len(batch.views))
+        self._count("pixels_rendered", len(batch.views) * batch.width * batch.height)
+        self._count("pixels_full_resolution", int((full.width * full.height).sum()))
+        self._count("pairs_differentiated", pr.camera_ids.numel())
+        self._count("pairs_unculled", len(batch.views) * context.model.num_points)
+        return pr
+
+    def _count(self, key: str, n: float) -> None:
+        self.work[key] = self.work.get(key, 0) + n
 
     def pair_gradients(self, pr: PairRender, probes: int, generator: torch.Generator) -> Iterator[Tuple[Dict[str, torch.Tensor], float]]:
         """(gradient of every pair, weight) for each probe (or each pixel-channel in `exact` mode): the weighted
@@ -132,12 +143,14 @@ class FisherSelector:
             for k in range(flat.shape[1]):
                 # Pixel k of every view at once: the pairs keep the views' gradients apart.
                 grads = torch.autograd.grad(flat[:, k].sum(), leaves, retain_graph=k < flat.shape[1] - 1, allow_unused=True)
+                self._count("backward_passes", 1)
                 yield self._named(names, grads, leaves), 1.0
             return
         for k in range(probes):
             eps = torch.randint(0, 2, pr.image.shape, generator=generator, device=pr.image.device, dtype=torch.int8)
             eps = eps.to(pr.image.dtype).mul_(2).sub_(1)
             grads = torch.autograd.grad(pr.image, leaves, grad_outputs=eps, retain_graph=k < probes - 1, allow_unused=True)
+            self._count("backward_passes", 1)
             yield self._named(names, grads, leaves), 1.0 / probes
 
     @staticmethod
@@ -191,6 +204,7 @@ class FisherSelector:
         generator.manual_seed(int(torch.randint(0, 2**62, (1,), generator=context.generator)))
         picked: List[int] = []
         first_scores: Dict[int, float] = {}
+        self.work = {}
         with eval_mode(model):
             # Recomputed every round: densification renumbers the Gaussians.
             h_train = self.diag_hessian(context, context.active, self.config.probes * self.config.train_probe_factor, generator)
@@ -209,5 +223,5 @@ class FisherSelector:
                     h_pick = self.diag_hessian(context, [best], self.config.probes * self.config.train_probe_factor, generator)
                     for name in h_train:
                         h_train[name] += h_pick[name]
-        return Selection(indices=picked, scores=first_scores)
+        return Selection(indices=picked, scores=first_scores, work=dict(self.work))
 

@@ -48,12 +48,13 @@ class HpgsSelector:
         # Loaded now, so a missing or mismatched checkpoint fails at start-up, not at the first round.
         self.pref = load_preference_model(config.model)
 
-    def features(self, context: SelectionContext, views: Sequence[int]) -> torch.Tensor:
-        return render_features(self.pref, context, views, self.config.render_short_side, self.config.batch_size)
+    def features(self, context: SelectionContext, views: Sequence[int], work: Optional[dict] = None) -> torch.Tensor:
+        return render_features(self.pref, context, views, self.config.render_short_side, self.config.batch_size, work)
 
     def select(self, context: SelectionContext) -> Selection:
-        active_f = self.features(context, context.active)
-        cand_f = self.features(context, context.candidates)
+        work: dict = {}
+        active_f = self.features(context, context.active, work)
+        cand_f = self.features(context, context.candidates, work)
         pool = list(context.candidates)
         picked: List[int] = []
         scores = {}
@@ -69,7 +70,7 @@ class HpgsSelector:
             picked.append(pool[best])
             # Greedy batch: the pick's feature joins the training side before the next pick.
             active_f = torch.cat([active_f, cand_f[best : best + 1]])
-        return Selection(indices=picked, scores=scores)
+        return Selection(indices=picked, scores=scores, work=work)
 
 
 def picked_positions(pool: List[int], picked: List[int]) -> List[int]:

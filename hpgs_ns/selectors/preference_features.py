@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import List, Optional, Sequence
+from typing import Dict, List, Optional, Sequence
 
 import torch
 
@@ -33,13 +33,20 @@ def _short_side(pref, requested: Optional[int]) -> int:
 
 
 @torch.no_grad()
-def _batched(pref, context: SelectionContext, views: Sequence[int], short_side: Optional[int], batch: int, fn: str) -> torch.Tensor:
+def _batched(pref, context: SelectionContext, views: Sequence[int], short_side: Optional[int], batch: int, fn: str,
+             work: Optional[Dict[str, float]] = None) -> torch.Tensor:
     pref.to(context.device)
+    work = {} if work is None else work
     outs: List[torch.Tensor] = []
     side = _short_side(pref, short_side)
     for start in range(0, len(views), batch):
         chunk = list(views[start : start + batch])
-        images = [pref.preprocess(im.permute(2, 0, 1)[None]) for im in context.render(chunk, side)]
+        renders = context.render(chunk, side)
+        full = context.cameras[torch.tensor(chunk, dtype=torch.long)]
+        for key, n in (("views_rendered", len(chunk)), ("pixels_rendered", sum(im.shape[0] * im.shape[1] for im in renders)),
+                       ("pixels_full_resolution", int((full.width * full.height).sum())), ("model_forwards", len(chunk))):
+            work[key] = work.get(key, 0) + n
+        images = [pref.preprocess(im.permute(2, 0, 1)[None]) for im in renders]
         if len({tuple(im.shape) for im in images}) > 1:  # mixed aspect ratios: one forward per image
             outs += [getattr(pref, fn)(im).float().cpu() for im in images]
             continue
@@ -54,11 +61,13 @@ def _batched(pref, context: SelectionContext, views: Sequence[int], short_side: 
     return torch.cat(outs)
 
 
-def render_features(pref, context: SelectionContext, views: Sequence[int], short_side: Optional[int] = None, batch: int = 16) -> torch.Tensor:
-    """Preference features F(render) of `views`: [len(views), F]."""
-    return _batched(pref, context, views, short_side, batch, "features")
+def render_features(pref, context: SelectionContext, views: Sequence[int], short_side: Optional[int] = None, batch: int = 16,
+                    work: Optional[Dict[str, float]] = None) -> torch.Tensor:
+    """Preference features F(render) of `views`: [len(views), F]. Counts what it renders into `work`."""
+    return _batched(pref, context, views, short_side, batch, "features", work)
 
 
-def render_scores(pref, context: SelectionContext, views: Sequence[int], short_side: Optional[int] = None, batch: int = 16) -> torch.Tensor:
-    """Preference scores l(F(render)) of `views` (higher = worse reconstruction): [len(views)]."""
-    return _batched(pref, context, views, short_side, batch, "score").reshape(-1)
+def render_scores(pref, context: SelectionContext, views: Sequence[int], short_side: Optional[int] = None, batch: int = 16,
+                  work: Optional[Dict[str, float]] = None) -> torch.Tensor:
+    """Preference scores l(F(render)) of `views` (higher = worse reconstruction): [len(views)]. Counts into `work`."""
+    return _batched(pref, context, views, short_side, batch, "score", work).reshape(-1)
