@@ -8,6 +8,7 @@ One run per (scene, protocol, selector, seed), plus two reference rows per (scen
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -100,6 +101,8 @@ class Bench:
     """Dataparser downscale factor (e.g. 2 for the shared bonsai-device images_2)."""
     rasterizer: Literal["auto", "gsplat", "cpu"] = "auto"
     """Rasterizer for all runs."""
+    reset_after_add: bool = False
+    """Reset the model and its schedules after each added view (FisherRF); results go under `<protocol>-reset`."""
     extra_args: str = ""
     """Extra `ns-train hpgs` arguments for every run (quoted)."""
     report_only: bool = False
@@ -122,6 +125,8 @@ class Bench:
         for scene in self.scenes:
             for pname in self.protocols:
                 protocol = scaled(PROTOCOLS[pname], self.step_scale)
+                if self.reset_after_add:
+                    protocol = dataclasses.replace(protocol, name=f"{protocol.name}-reset")
                 for seed in self.seeds:
                     names = list(self.selectors) + (list(REFERENCES) if self.references else [])
                     for name in names:
@@ -183,6 +188,8 @@ def train_args(bench: Bench, scene: Path, protocol: Protocol, name: str, seed: i
         args += ["--pipeline.datamanager.select-every", str(protocol.select_every)]
     if bench.downscale_factor is not None:
         args += ["--pipeline.datamanager.dataparser.downscale-factor", str(bench.downscale_factor)]
+    if bench.reset_after_add:
+        args += ["--pipeline.datamanager.reset-after-add", "True"]
     return args + shlex.split(bench.extra_args)
 
 

