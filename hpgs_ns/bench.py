@@ -117,6 +117,10 @@ class Bench:
         table = markdown_table(rows)
         (self.out / "table.md").write_text(table)
         print(table)
+        work = work_table(rows)
+        if work:
+            (self.out / "work.md").write_text(work)
+            print(work)
         for path in make_plots(rows, self.out):
             CONSOLE.print(f"plot: {path}")
 
@@ -227,6 +231,7 @@ def run_one(bench: Bench, scene: Path, protocol: Protocol, name: str, seed: int)
         "wall_seconds": wall,
         "selection_seconds": float(sum(r["seconds"] for r in rounds)),
         "selection_seconds_per_round": [r["seconds"] for r in rounds],
+        "selection_work": summed_work(rounds),
         **train_timing(run_dir),
         "peak_memory_mb": {"host_rss": usage.ru_maxrss / 1024, "gpu_allocated": selected.get("peak_gpu_memory_mb")},
         "initial_views": selected["initial"],
@@ -234,6 +239,44 @@ def run_one(bench: Bench, scene: Path, protocol: Protocol, name: str, seed: int)
         "command": shlex.join(cmd),
         "device": device_name(),
     }
+
+
+def summed_work(rounds: List[dict]) -> Dict[str, float]:
+    """The selectors' work counters (`Selection.work`) summed over a run's rounds."""
+    total: Dict[str, float] = {}
+    for r in rounds:
+        for key, value in r.get("work", {}).items():
+            total[key] = total.get(key, 0.0) + value
+    return total
+
+
+def work_table(rows: List[dict]) -> str:
+    """What selection computed and what it skipped, per selector (mean over runs): renders at the size the
+    selector needs vs the dataset's, Fisher's frustum-culled (view, Gaussian) pairs vs all of them."""
+    groups: Dict[Tuple[str, str, str], List[dict]] = {}
+    for r in rows:
+        if r.get("selection_work"):
+            groups.setdefault((r["scene"], r["protocol"], r["selector"]), []).append(r)
+    if not groups:
+        return ""
+    lines = [
+        "| scene | protocol | selector | views rendered | pixels vs full size | pairs vs unculled | backward passes | forwards | selection (s) |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+
+    def mean(group: List[dict], key: str) -> float:
+        return sum(g["selection_work"].get(key, 0.0) for g in group) / len(group)
+
+    for (scene, protocol, sel), group in sorted(groups.items()):
+        full, pairs_all = mean(group, "pixels_full_resolution"), mean(group, "pairs_unculled")
+        pixels = f"{100 * mean(group, 'pixels_rendered') / full:.0f}%" if full else "-"
+        pairs = f"{100 * mean(group, 'pairs_differentiated') / pairs_all:.0f}%" if pairs_all else "-"
+        seconds = sum(g["selection_seconds"] for g in group) / len(group)
+        lines.append(
+            f"| {scene} | {protocol} | {sel} | {mean(group, 'views_rendered'):.0f} | {pixels} | {pairs} | "
+            f"{mean(group, 'backward_passes'):.0f} | {mean(group, 'model_forwards'):.0f} | {seconds:.1f} |"
+        )
+    return "\n".join(lines) + "\n"
 
 
 def evaluate_run(run_dir: Path) -> dict:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 import math
 
-from hpgs_ns.bench import Bench, fisherrf_schedule, load_results, markdown_table
+from hpgs_ns.bench import Bench, fisherrf_schedule, load_results, markdown_table, summed_work, work_table
 
 KEYS = {
     "scene", "protocol", "selector", "seed", "steps", "test", "psnr_per_round", "wall_seconds", "selection_seconds",
@@ -48,3 +48,14 @@ def test_tiny_bench_writes_results_table_plots_and_resumes(tiny_scene, tmp_path)
     bench.main()
     assert {p: p.stat().st_mtime for p in bench.out.glob("*/*/*/seed*.json")} == before
     assert json.loads(next(iter(before)).read_text())["seed"] == 0
+
+
+def test_work_table_shows_what_selection_skipped():
+    rounds = [{"work": {"pixels_rendered": 25.0, "pixels_full_resolution": 100.0, "pairs_differentiated": 30.0,
+                        "pairs_unculled": 120.0, "backward_passes": 8.0, "views_rendered": 10.0}}] * 2
+    work = summed_work(rounds)
+    assert work["pixels_rendered"] == 50 and work["backward_passes"] == 16
+    row = {"scene": "s", "protocol": "hpgs", "selector": "fisher", "selection_work": work, "selection_seconds": 1.5}
+    table = work_table([row, {**row, "selector": "random", "selection_work": {}}])
+    assert "| s | hpgs | fisher | 20 | 25% | 25% | 16 | 0 | 1.5 |" in table
+    assert "random" not in table  # selectors that compute nothing have no row

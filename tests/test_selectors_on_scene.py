@@ -73,10 +73,19 @@ def test_farthest_picks_the_unseen_side(one_sided):
 
 def test_fisher_picks_the_unseen_side_and_batches_without_repeats(one_sided):
     trainer, az = one_sided
-    names, selection = pick(trainer, FisherSelectorConfig(probes=4, train_probe_factor=2), "fisher", k=2)
+    names, selection = pick(trainer, FisherSelectorConfig(probes=4, train_probe_factor=2, view_batch=8), "fisher", k=2)
     assert_unseen_side(names[:1], az)
     assert len(set(names)) == 2
     assert all(math.isfinite(s) for s in selection.scores.values())
+    # Work done and skipped: half-resolution renders, frustum-culled pairs, one backward per probe per batch of 8.
+    dm = trainer.pipeline.datamanager
+    n_active, n_cand = len(dm.active), len(dm.candidates)
+    batches = lambda n: -(-n // 8)  # noqa: E731
+    work = selection.work
+    assert work["pixels_rendered"] == 0.25 * work["pixels_full_resolution"]
+    assert 0 < work["pairs_differentiated"] < work["pairs_unculled"]
+    assert work["backward_passes"] == 8 * batches(n_active) + 4 * batches(n_cand) + 8 + 4 * batches(n_cand - 1)
+    assert work["views_rendered"] == n_active + n_cand + 1 + (n_cand - 1)
 
 
 def test_hpgs_with_a_blur_preferring_model_picks_the_unseen_side(one_sided, tiny_scene, tmp_path):
