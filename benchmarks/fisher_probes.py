@@ -1,0 +1,83 @@
+"""Fisher's probe count K: run time against error, on a trained `hpgs` run.
+
+Loads the run's last checkpoint (its active set comes with it), scores every candidate with K probes for each K
+in `--probes`, and compares each ranking with a reference K (`--reference`, default 256): Spearman rank
+correlation, whether the top pick agrees, and seconds per round. Prints a table and writes JSON.
+
+    python benchmarks/fisher_probes.py --run outputs/scene/hpgs/<timestamp> --out fisher_probes.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import time
+from pathlib import Path
+from typing import Dict, List
+
+import torch
+
+
+def spearman(a: List[float], b: List[float]) -> float:
+    ra = torch.tensor(a).argsort().argsort().double()
+    rb = torch.tensor(b).argsort().argsort().double()
+    ra, rb = ra - ra.mean(), rb - rb.mean()
+    return float((ra * rb).sum() / (ra.norm() * rb.norm()))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--run", type=Path, required=True, help="run folder holding config.yml")
+    ap.add_argument("--out", type=Path, required=True, help="JSON to write")
+    ap.add_argument("--probes", type=int, nargs="+", default=[4, 8, 16, 32, 64])
+    ap.add_argument("--reference", type=int, default=256)
+    ap.add_argument("--repeats", type=int, default=3, help="seeds per K (the spread of the estimate)")
+    args = ap.parse_args()
+
+    from nerfstudio.utils.eval_utils import eval_setup
+
+    from hpgs_ns.datamanager import write_json_atomic
+    from hpgs_ns.selectors.fisher import FisherSelectorConfig
+
+    _, pipeline, _, step = eval_setup(args.run / "config.yml", test_mode="test")
+    dm, model = pipeline.datamanager, pipeline.model
+
+    def scores(k: int, seed: int) -> Dict[int, float]:
+        ctx = dm.selection_context(step, model)
+        ctx.generator = torch.Generator().manual_seed(seed)
+        ctx.num_to_pick = 1
+        return FisherSelectorConfig(probes=k).setup().select(ctx).scores
+
+    scores(4, 0)  # warm-up (CUDA kernels, allocator)
+    ref = scores(args.reference, 12345)
+    order = sorted(ref)
+    ref_list = [ref[c] for c in order]
+    best = max(ref, key=ref.get)
+    rows = []
+    for k in args.probes:
+        rhos, tops, secs = [], [], []
+        for seed in range(args.repeats):
+            if torch.cuda.is_available():
+                torch.cuda.synchronize()
+            t = time.perf_counter()
+            s = scores(k, seed)
+            if torch.cuda.is_available():
+                torch.cuda.synchronize()
+            secs.append(time.perf_counter() - t)
+            rhos.append(spearman([s[c] for c in order], ref_list))
+            tops.append(max(s, key=s.get) == best)
+        row = {"probes": k, "seconds_per_round": sum(secs) / len(secs), "spearman_vs_reference": sum(rhos) / len(rhos),
+               "spearman_min": min(rhos), "top_pick_agrees": sum(tops) / len(tops)}
+        rows.append(row)
+        print(f"K={k:4d}  {row['seconds_per_round']:7.2f} s/round  Spearman {row['spearman_vs_reference']:.3f} "
+              f"(min {row['spearman_min']:.3f})  top pick agrees {100 * row['top_pick_agrees']:.0f}%", flush=True)
+    device = torch.cuda.get_device_name(0) if torch.cuda.is_available() else f"cpu ({platform.processor() or 'x86_64'})"
+    write_json_atomic(args.out, {
+        "run": str(args.run), "step": step, "gaussians": int(model.num_points), "candidates": len(ref),
+        "active": len(dm.active), "reference_probes": args.reference, "device": device, "rows": rows,
+    })
+
+
+if __name__ == "__main__":
+    main()
