@@ -157,14 +157,14 @@ class RayExecutor:
                     yield Done(refs[ref], error=f"Ray task failed: {exc}")
 
 
-def start_local_ray(ray, attempts: int = 3) -> None:
+def start_local_ray(ray, attempts: int = 3, num_cpus: Optional[int] = None) -> None:
     """A local Ray cluster on this machine (all its CPUs and GPUs), retried if its startup times out.
 
     The raylet gives its agents a fixed 15 s to start (ray-project/ray#65983); on a small, busy host their Python
     imports can take longer, and a second try usually fits."""
     for attempt in range(1, attempts + 1):
         try:
-            ray.init(include_dashboard=False, log_to_driver=False)
+            ray.init(num_cpus=num_cpus, include_dashboard=False, log_to_driver=False)
             return
         except Exception as exc:
             ray.shutdown()
