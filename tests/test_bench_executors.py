@@ -104,18 +104,21 @@ def test_ray_sweep_matches_local_and_resumes_after_the_driver_is_killed(local_re
     pytest.importorskip("ray", reason="needs Ray: pip install 'hpgs-ns[cluster]'")
     out = tmp_path / "bench"
     ray_args = ("--executor", "ray", "--ray-gpus-per-run", "0", "--ray-cpus-per-run", "1")
-    log = open(tmp_path / "driver.log", "w")
-    # Own session: the driver's local Ray cluster and its workers can be cleaned up as one group.
-    driver = subprocess.Popen(cli(tiny_scene, out, *ray_args), env=env(), stdout=log, stderr=log, start_new_session=True)
-    deadline = time.time() + 400
-    while not list(out.glob("*/*/*/seed*.json")):
-        assert driver.poll() is None, (tmp_path / "driver.log").read_text()[-3000:]
-        assert time.time() < deadline, "no run finished"
-        time.sleep(0.5)
-    driver.kill()
-    driver.wait()
+    with open(tmp_path / "driver.log", "w") as log:
+        # Own session: the driver's local Ray cluster and its workers can be cleaned up as one group.
+        driver = subprocess.Popen(cli(tiny_scene, out, *ray_args), env=env(), stdout=log, stderr=log, start_new_session=True)
+        deadline = time.time() + 400
+        while not list(out.glob("*/*/*/seed*.json")):
+            assert driver.poll() is None, (tmp_path / "driver.log").read_text()[-3000:]
+            assert time.time() < deadline, "no run finished"
+            time.sleep(0.5)
+        driver.kill()
+        driver.wait()
     time.sleep(2)
-    os.killpg(driver.pid, signal.SIGKILL)  # whatever of the sweep was still running dies with it
+    try:
+        os.killpg(driver.pid, signal.SIGKILL)  # whatever of the sweep was still running dies with it
+    except ProcessLookupError:
+        pass  # Ray already took its processes down with the driver
     finished = {p: p.stat().st_mtime_ns for p in out.glob("*/*/*/seed*.json")}
     assert 1 <= len(finished) < 4
     assert not list(out.glob("*/*/*/.seed*")), "a half-written JSON was left"
