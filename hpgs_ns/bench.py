@@ -13,6 +13,7 @@ import json
 import math
 import os
 import shlex
+import shutil
 import subprocess
 import sys
 import time
@@ -20,10 +21,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Literal, Optional, Sequence, Tuple
 
+import tyro
 from rich.console import Console
 from rich.table import Table
 
-from hpgs_ns.datamanager import write_json_atomic
+from hpgs_ns.executors import ExecutorConfig, run_sweep
 
 CONSOLE = Console(stderr=True)
 SELECTORS = ("random", "farthest", "fisher", "hpgs", "condorcet")
@@ -107,6 +109,8 @@ class Bench:
     """Extra `ns-train hpgs` arguments for every run (quoted)."""
     report_only: bool = False
     """Only rebuild the table and plots from existing JSON."""
+    cluster: tyro.conf.OmitArgPrefixes[ExecutorConfig] = field(default_factory=ExecutorConfig)
+    """Where the runs execute (`--executor local|ray|slurm` and its options)."""
 
     def main(self) -> None:
         if not self.report_only:
@@ -141,26 +145,19 @@ class Bench:
         for scene in self.scenes:
             if not (scene / "sparse" / "0").is_dir():
                 raise SystemExit(f"hpgs bench: {scene} is not a scene folder (no sparse/0); pass --scenes PATH")
-        done = 0
-        for scene, protocol, name, seed in self.jobs():
-            path = result_path(self.out, scene, protocol.name, name, seed)
-            if path.exists():
-                continue
-            if self.max_runs is not None and done >= self.max_runs:
-                CONSOLE.print(f"[yellow]--max-runs {self.max_runs} reached; run again to continue")
-                return
-            CONSOLE.print(f"[bold]{scene.name} / {protocol.name} / {name} / seed {seed}[/bold]")
-            result = run_one(self, scene, protocol, name, seed)
-            write_json_atomic(path, result)
-            done += 1
-            CONSOLE.print(
-                f"  PSNR {result['test']['psnr']:.2f}  wall {result['wall_seconds']:.0f} s  "
-                f"selection {result['selection_seconds']:.1f} s"
-            )
+        todo = [job for job in self.jobs() if not result_path(self.out, job[0], job[1].name, job[2], job[3]).exists()]
+        if self.max_runs is not None and len(todo) > self.max_runs:
+            CONSOLE.print(f"[yellow]--max-runs {self.max_runs}: {len(todo) - self.max_runs} runs left; run again to continue")
+            todo = todo[: self.max_runs]
+        run_sweep(self, todo, self.cluster)
 
 
 def result_path(out: Path, scene: Path, protocol: str, name: str, seed: int) -> Path:
     return out / scene.name / protocol / name / f"seed{seed}.json"
+
+
+def run_log_path(out: Path, scene: Path, protocol: str, name: str, seed: int) -> Path:
+    return out / "_runs" / f"{scene.name}-{protocol}-{name}-seed{seed}.log"
 
 
 def train_args(bench: Bench, scene: Path, protocol: Protocol, name: str, seed: int, run_root: Path) -> List[str]:
@@ -197,22 +194,27 @@ def train_args(bench: Bench, scene: Path, protocol: Protocol, name: str, seed: i
     return args + shlex.split(bench.extra_args)
 
 
-def run_one(bench: Bench, scene: Path, protocol: Protocol, name: str, seed: int) -> dict:
+def run_one(
+    bench: Bench, scene: Path, protocol: Protocol, name: str, seed: int, env: Optional[Dict[str, str]] = None
+) -> dict:
+    """Train and evaluate one run in subprocesses with environment `env` (default: this process's)."""
     run_root = bench.out / "_runs"
     cmd = train_args(bench, scene, protocol, name, seed, run_root)
+    run_dir = run_root / scene.name / "hpgs" / f"{protocol.name}-{name}-seed{seed}"
+    # A run killed half-way left events and checkpoints there; timing and eval must see only this run's.
+    shutil.rmtree(run_dir, ignore_errors=True)
     start = time.perf_counter()
-    log_path = run_root / f"{scene.name}-{protocol.name}-{name}-seed{seed}.log"
+    log_path = run_log_path(bench.out, scene, protocol.name, name, seed)
     log_path.parent.mkdir(parents=True, exist_ok=True)
     with open(log_path, "w") as log:
-        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT)
+        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env)
         # wait4 gives this child's own peak RSS (getrusage(RUSAGE_CHILDREN) would be the max over all runs).
         _, status, usage = os.wait4(proc.pid, 0)
     wall = time.perf_counter() - start
     if os.waitstatus_to_exitcode(status) != 0:
         tail = "\n".join(log_path.read_text().strip().splitlines()[-15:])
         raise SystemExit(f"hpgs bench: training failed ({shlex.join(cmd)}):\n{tail}")
-    run_dir = run_root / scene.name / "hpgs" / f"{protocol.name}-{name}-seed{seed}"
-    metrics = evaluate_run(run_dir)
+    metrics = evaluate_run(run_dir, env)
     selected = json.loads((run_dir / "selected_views.json").read_text())
     rounds = selected["rounds"]
     return {
@@ -279,12 +281,12 @@ def work_table(rows: List[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def evaluate_run(run_dir: Path) -> dict:
+def evaluate_run(run_dir: Path, env: Optional[Dict[str, str]] = None) -> dict:
     """Stock `ns-eval` on the run's final checkpoint: mean test-view PSNR/SSIM/LPIPS."""
     out = run_dir / "eval.json"
     subprocess.run(
         [sys.executable, "-m", "nerfstudio.scripts.eval", "--load-config", str(run_dir / "config.yml"), "--output-path", str(out)],
-        check=True, capture_output=True,
+        check=True, capture_output=True, env=env,
     )
     return json.loads(out.read_text())
 

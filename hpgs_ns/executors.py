@@ -1,0 +1,281 @@
+"""Where `hpgs bench` runs its training runs: here (`local`), on a Ray cluster (`ray`) or on Slurm (`slurm`).
+
+The scheduling is the cluster's: Ray tasks with `num_gpus`/`num_cpus`, or submitit job arrays. This module only
+maps `sweep_worker` over the runs still missing and, on the driver, writes each run's JSON as it arrives,
+streams progress with rich and reports failed runs (name and log) after the others have finished.
+
+Every worker writes its run's JSON itself (temp file + rename) as well: a run that finishes while the driver is
+dead (Slurm jobs outlive it) is kept, and a re-run of the sweep submits only the runs with no JSON.
+Ray and submitit are optional (`pip install 'hpgs-ns[cluster]'`) and imported only when chosen.
+"""
+
+from __future__ import annotations
+
+import os
+import queue
+from concurrent.futures import ThreadPoolExecutor, as_completed
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any, Callable, Dict, Iterator, List, Literal, Optional, Sequence, Tuple
+
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+CONSOLE = Console(stderr=True)
+INSTALL = "pip install 'hpgs-ns[cluster]'"
+
+# A worker function: (item, extra environment for the run's subprocess) -> picklable value.
+Worker = Callable[[Any, Dict[str, str]], Any]
+
+
+@dataclass
+class ExecutorConfig:
+    """Where the runs execute. `local` runs them here, one after another (or one per visible GPU); `ray` submits
+    each run as a Ray task; `slurm` submits a job array through submitit. Runs whose JSON exists are skipped."""
+
+    executor: Literal["local", "ray", "slurm"] = "local"
+    """Run locally, as Ray tasks, or as Slurm jobs (the last two need `pip install 'hpgs-ns[cluster]'`)."""
+    local_workers: Optional[int] = None
+    """Concurrent runs for `local`: default one per visible CUDA GPU (each sees only its own), else 1."""
+    ray_address: Optional[str] = None
+    """Ray cluster to join (`auto`, `HOST:6379`); default $RAY_ADDRESS, else a new local one."""
+    ray_gpus_per_run: float = 1.0
+    """GPUs each Ray task reserves (0 for CPU runs; 0.5 packs two runs per GPU)."""
+    ray_cpus_per_run: float = 1.0
+    """CPUs each Ray task reserves; also the run's OMP_NUM_THREADS (at least 1)."""
+    slurm_partition: Optional[str] = None
+    """Slurm partition (default: the cluster's)."""
+    slurm_time_min: int = 60
+    """Time limit of each Slurm job, minutes."""
+    slurm_gpus_per_run: int = 1
+    """GPUs per Slurm job."""
+    slurm_cpus_per_run: int = 8
+    """CPUs per Slurm job; also the run's OMP_NUM_THREADS."""
+    slurm_mem_gb: Optional[int] = None
+    """Memory per Slurm job (default: the partition's)."""
+    slurm_parallelism: int = 64
+    """At most this many jobs of the array run at once."""
+    slurm_cluster: Literal["slurm", "local", "debug"] = "slurm"
+    """submitit backend: `slurm`, or `local`/`debug` to try the Slurm path on one machine (tests)."""
+
+
+@dataclass
+class Done:
+    """One finished item: its index in the submitted list and the worker's value, or why there is none."""
+
+    index: int
+    value: Any = None
+    error: Optional[str] = None
+
+
+def thread_env(threads: int) -> Dict[str, str]:
+    # Fixed intra-op threads: CPU results then depend only on the seed, not on the worker's core count.
+    return {"OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)}
+
+
+def visible_gpus() -> List[str]:
+    """CUDA device ids this process may use, as CUDA_VISIBLE_DEVICES spells them."""
+    import torch
+
+    n = torch.cuda.device_count()
+    listed = os.environ.get("CUDA_VISIBLE_DEVICES")
+    ids = [d.strip() for d in listed.split(",") if d.strip()] if listed else [str(i) for i in range(n)]
+    return ids[:n]
+
+
+class LocalExecutor:
+    """Runs here: in-process one after another, or `workers` at a time, each pinned to one GPU if there are any."""
+
+    def __init__(self, config: ExecutorConfig):
+        self.config = config
+
+    def map(self, fn: Worker, items: Sequence[Any]) -> Iterator[Done]:
+        gpus = visible_gpus()
+        workers = self.config.local_workers or max(len(gpus), 1)
+        if workers == 1:
+            for i, item in enumerate(items):
+                yield Done(i, fn(item, {}))
+            return
+        # Each slot is one GPU (or none on CPU); a run takes a slot for its whole duration.
+        slots: "queue.Queue[Optional[str]]" = queue.Queue()
+        for k in range(workers):
+            slots.put(gpus[k % len(gpus)] if gpus else None)
+        threads = os.environ.get("OMP_NUM_THREADS") or str(max((os.cpu_count() or 1) // workers, 1))
+
+        def call(item: Any) -> Any:
+            slot = slots.get()
+            env = thread_env(int(threads))
+            if slot is not None:
+                env["CUDA_VISIBLE_DEVICES"] = slot
+            try:
+                return fn(item, env)
+            finally:
+                slots.put(slot)
+
+        with ThreadPoolExecutor(workers) as pool:
+            futures = {pool.submit(call, item): i for i, item in enumerate(items)}
+            for future in as_completed(futures):
+                yield Done(futures[future], future.result())
+
+
+class RayExecutor:
+    """One Ray task per item, reserving `ray_gpus_per_run` GPUs and `ray_cpus_per_run` CPUs."""
+
+    def __init__(self, config: ExecutorConfig):
+        try:
+            import ray
+        except ImportError:
+            raise SystemExit(f"--executor ray needs Ray: {INSTALL}") from None
+        self.ray, self.config = ray, config
+
+    def map(self, fn: Worker, items: Sequence[Any]) -> Iterator[Done]:
+        ray, cfg = self.ray, self.config
+        started_here = False
+        if not ray.is_initialized():
+            address = cfg.ray_address or os.environ.get("RAY_ADDRESS")
+            started_here = address is None
+            if started_here:
+                start_local_ray(ray)
+            else:
+                ray.init(address=address, log_to_driver=False)
+        gpus = ray.cluster_resources().get("GPU", 0)
+        if cfg.ray_gpus_per_run > gpus:
+            message = f"--ray-gpus-per-run {cfg.ray_gpus_per_run:g} but the Ray cluster has {gpus:g} GPUs"
+            if started_here:
+                raise SystemExit(f"hpgs bench: {message}; pass --ray-gpus-per-run 0 for CPU runs")
+            CONSOLE.print(f"[yellow]{message}: tasks wait until the autoscaler adds GPU nodes")
+        task = ray.remote(num_gpus=cfg.ray_gpus_per_run, num_cpus=cfg.ray_cpus_per_run)(fn)
+        env = thread_env(max(int(cfg.ray_cpus_per_run), 1))
+        refs = {task.remote(item, env): i for i, item in enumerate(items)}
+        pending = list(refs)
+        while pending:
+            ready, pending = ray.wait(pending, num_returns=1)
+            for ref in ready:
+                try:
+                    yield Done(refs[ref], ray.get(ref))
+                except Exception as exc:  # the worker died (node lost, out of memory): report, keep the rest
+                    yield Done(refs[ref], error=f"Ray task failed: {exc}")
+
+
+def start_local_ray(ray, attempts: int = 3, num_cpus: Optional[int] = None) -> None:
+    """A local Ray cluster on this machine (all its CPUs and GPUs), retried if its startup times out.
+
+    The raylet gives its agents a fixed 15 s to start (ray-project/ray#65983); on a small, busy host their Python
+    imports can take longer, and a second try usually fits."""
+    for attempt in range(1, attempts + 1):
+        try:
+            ray.init(num_cpus=num_cpus, include_dashboard=False, log_to_driver=False)
+            return
+        except Exception as exc:
+            ray.shutdown()
+            if attempt == attempts:
+                raise SystemExit(f"hpgs bench: could not start a local Ray cluster ({attempts} tries): {exc}") from exc
+            CONSOLE.print(f"[yellow]local Ray cluster did not start (try {attempt} of {attempts}); retrying")
+
+
+class SlurmExecutor:
+    """A submitit job array: one Slurm job per item (or submitit's local/debug executor for tests)."""
+
+    def __init__(self, config: ExecutorConfig, folder: Path):
+        try:
+            import submitit
+        except ImportError:
+            raise SystemExit(f"--executor slurm needs submitit: {INSTALL}") from None
+        self.submitit, self.config, self.folder = submitit, config, folder
+
+    def map(self, fn: Worker, items: Sequence[Any]) -> Iterator[Done]:
+        cfg = self.config
+        executor = self.submitit.AutoExecutor(folder=self.folder / "%j", cluster=cfg.slurm_cluster)
+        params: Dict[str, Any] = {
+            "name": "hpgs-bench", "timeout_min": cfg.slurm_time_min, "nodes": 1, "tasks_per_node": 1,
+            "gpus_per_node": cfg.slurm_gpus_per_run, "cpus_per_task": cfg.slurm_cpus_per_run,
+            "slurm_array_parallelism": cfg.slurm_parallelism,
+        }
+        if cfg.slurm_partition:
+            params["slurm_partition"] = cfg.slurm_partition
+        if cfg.slurm_mem_gb:
+            params["mem_gb"] = cfg.slurm_mem_gb
+        executor.update_parameters(**params)
+        env = thread_env(max(cfg.slurm_cpus_per_run, 1))
+        jobs = executor.map_array(fn, list(items), [env] * len(items))
+        index = {id(job): i for i, job in enumerate(jobs)}
+        CONSOLE.print(f"submitted {len(jobs)} jobs ({cfg.slurm_cluster}), logs under {self.folder}")
+        poll = 10.0 if cfg.slurm_cluster == "slurm" else 0.5
+        for job in self.submitit.helpers.as_completed(jobs, poll_frequency=poll):
+            try:
+                yield Done(index[id(job)], job.result())
+            except Exception as exc:  # cancelled, timed out, or the node failed
+                yield Done(index[id(job)], error=f"job {job.job_id} failed: {str(exc).strip().splitlines()[-1]}")
+
+
+def make_executor(config: ExecutorConfig, out: Path):
+    if config.executor == "ray":
+        return RayExecutor(config)
+    if config.executor == "slurm":
+        return SlurmExecutor(config, out / "_submitit")
+    return LocalExecutor(config)
+
+
+# --- hpgs bench on top of an executor -------------------------------------------------------------------------
+
+Job = Tuple[Path, Any, str, int]  # (scene, Protocol, selector or reference name, seed), as `Bench.jobs()` lists
+
+
+def run_label(job: Job) -> str:
+    scene, protocol, name, seed = job
+    return f"{scene.name}/{protocol.name}/{name}/seed{seed}"
+
+
+def sweep_worker(item: Tuple[Any, Job], env: Dict[str, str]) -> dict:
+    """Worker side: train and evaluate one run, write its JSON, return `{"result": ...}` or `{"error", "log"}`."""
+    from hpgs_ns.bench import result_path, run_log_path, run_one  # bench imports this module
+
+    bench, (scene, protocol, name, seed) = item
+    try:
+        result = run_one(bench, scene, protocol, name, seed, env={**os.environ, **env})
+    except (Exception, SystemExit) as exc:  # run_one exits on a failed training; keep the worker alive
+        return {"error": str(exc), "log": str(run_log_path(bench.out, scene, protocol.name, name, seed))}
+    from hpgs_ns.datamanager import write_json_atomic
+
+    write_json_atomic(result_path(bench.out, scene, protocol.name, name, seed), result)
+    return {"result": result}
+
+
+def run_sweep(bench: Any, jobs: Sequence[Job], config: ExecutorConfig) -> None:
+    """Driver side: run `jobs` on the configured executor; every finished run's JSON ends up under `bench.out`."""
+    from hpgs_ns.bench import result_path
+    from hpgs_ns.datamanager import write_json_atomic
+
+    if not jobs:
+        return
+    # Absolute paths: Ray workers and Slurm jobs need not start in this folder.
+    bench = replace(bench, out=bench.out.resolve(), scenes=[s.resolve() for s in bench.scenes])
+    jobs = [(scene.resolve(), protocol, name, seed) for scene, protocol, name, seed in jobs]
+    executor = make_executor(config, bench.out)
+    CONSOLE.print(f"hpgs bench: {len(jobs)} runs to do ({config.executor})")
+    failures: List[str] = []
+    columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
+    with Progress(*columns, console=CONSOLE) as progress:
+        bar = progress.add_task("runs", total=len(jobs))
+        for done in executor.map(sweep_worker, [(bench, job) for job in jobs]):
+            job = jobs[done.index]
+            value = done.value or {"error": done.error, "log": None}
+            if "result" in value:
+                result = value["result"]
+                path = result_path(bench.out, job[0], job[1].name, job[2], job[3])
+                if not path.exists():  # the worker wrote it unless it ran on another filesystem
+                    write_json_atomic(path, result)
+                progress.console.print(
+                    f"{run_label(job)}  PSNR {result['test']['psnr']:.2f}  wall {result['wall_seconds']:.0f} s  "
+                    f"selection {result['selection_seconds']:.1f} s"
+                )
+            else:
+                failures.append(f"{run_label(job)} (log: {value['log']})")
+                last = (value["error"] or "").strip().splitlines()
+                progress.console.print(f"[red]failed: {failures[-1]}: {last[-1] if last else ''}")
+            progress.advance(bar)
+    if failures:
+        raise SystemExit(
+            f"hpgs bench: {len(failures)} of {len(jobs)} runs failed (the others' results are saved; "
+            "re-run to retry only these):\n  " + "\n  ".join(failures)
+        )
