@@ -4,6 +4,8 @@ One run per (scene, protocol, selector, seed), plus two reference rows per (scen
 `initial` (no views added) and `all` (every training view). Each run writes
 `OUT/<scene>/<protocol>/<selector>/seed<k>.json`; runs whose JSON exists are skipped, so a killed sweep resumes.
 `hpgs bench --report-only` rebuilds the markdown table and the plots from whatever JSON is there.
+`hpgs bench --stress pose-noise exposure corrupt` also runs every scene perturbed (`hpgs_ns/stress.py`): copies
+`OUT/_scenes/<scene>+<perturbation>`, results under `OUT/<scene>+<perturbation>/`, and `stress.md` beside `table.md`.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from rich.console import Console
 from rich.table import Table
 
 from hpgs_ns.datamanager import write_json_atomic
+from hpgs_ns.stress import PerturbationName, StressConfig, StressError, stress_table, stressed_scenes, write_text_atomic
 
 CONSOLE = Console(stderr=True)
 SELECTORS = ("random", "farthest", "fisher", "hpgs", "condorcet")
@@ -104,8 +107,17 @@ class Bench:
     """Extra `ns-train hpgs` arguments for every run (quoted)."""
     report_only: bool = False
     """Only rebuild the table and plots from existing JSON."""
+    stress: List[PerturbationName] = field(default_factory=list)
+    """Also run every scene under these perturbations of its training views (copies in OUT/_scenes)."""
+    stress_config: StressConfig = field(default_factory=StressConfig)
+    """Strength and seed of each perturbation."""
 
     def main(self) -> None:
+        if self.stress and not self.report_only:
+            try:
+                self.scenes = stressed_scenes(self.scenes, self.stress, self.out / "_scenes", self.stress_config)
+            except StressError as err:
+                raise SystemExit(f"hpgs bench: {err}") from None
         if not self.report_only:
             self.run_all()
         rows = load_results(self.out)
@@ -114,6 +126,10 @@ class Bench:
         table = markdown_table(rows)
         (self.out / "table.md").write_text(table)
         print(table)
+        stress = stress_table(rows)
+        if stress:
+            write_text_atomic(self.out / "stress.md", stress)
+            print(stress)
         for path in make_plots(rows, self.out):
             CONSOLE.print(f"plot: {path}")
 
