@@ -25,7 +25,7 @@ from rich.console import Console
 from rich.table import Table
 
 from hpgs_ns.datamanager import write_json_atomic
-from hpgs_ns.stress import PerturbationName, StressConfig, StressError, stress_table, stressed_scenes, write_text_atomic
+from hpgs_ns.stress import PerturbationName, StressConfig, StressError, stress_plot, stress_table, stressed_scenes, write_text_atomic
 
 CONSOLE = Console(stderr=True)
 SELECTORS = ("random", "farthest", "fisher", "hpgs", "condorcet")
@@ -130,6 +130,8 @@ class Bench:
         if stress:
             write_text_atomic(self.out / "stress.md", stress)
             print(stress)
+            for path in stress_plot(rows, self.out):
+                CONSOLE.print(f"plot: {path}")
         for path in make_plots(rows, self.out):
             CONSOLE.print(f"plot: {path}")
 

@@ -279,6 +279,49 @@ def split_scene_name(scene: str) -> Tuple[str, str]:
     return base, perturbation or "clean"
 
 
+def _mean_psnr(rows: List[dict]) -> Dict[Tuple[str, str, str, str], float]:
+    """(base scene, protocol, selector, perturbation) -> mean test PSNR over seeds."""
+    values: Dict[Tuple[str, str, str, str], List[float]] = {}
+    for r in rows:
+        base, perturbation = split_scene_name(r["scene"])
+        values.setdefault((base, r["protocol"], r["selector"], perturbation), []).append(r["test"]["psnr"])
+    return {k: sum(v) / len(v) for k, v in values.items()}
+
+
+def stress_plot(rows: List[dict], out: Path) -> List[Path]:
+    """Per (scene, protocol): bars of the PSNR change from clean, one group per selector, one bar per perturbation."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from hpgs_ns.bench import REFERENCES, SELECTORS
+
+    psnr = _mean_psnr(rows)
+    order = {name: i for i, name in enumerate(list(SELECTORS) + list(REFERENCES))}
+    paths = []
+    for base, protocol in sorted({k[:2] for k in psnr if k[3] != "clean"}):
+        keys = [k for k in psnr if k[:2] == (base, protocol)]
+        perturbations = sorted({k[3] for k in keys if k[3] != "clean"})
+        selectors = sorted({k[2] for k in keys if (base, protocol, k[2], "clean") in psnr}, key=lambda s: (order.get(s, 99), s))
+        fig, ax = plt.subplots(figsize=(1.4 * len(selectors) + 2, 3.6))
+        width = 0.8 / len(perturbations)
+        for j, p in enumerate(perturbations):
+            xs = [i + (j - (len(perturbations) - 1) / 2) * width for i in range(len(selectors))]
+            drops = [psnr.get((base, protocol, s, p), float("nan")) - psnr[(base, protocol, s, "clean")] for s in selectors]
+            ax.bar(xs, drops, width, label=p)
+        ax.axhline(0, color="k", lw=0.8)
+        ax.set_xticks(range(len(selectors)), selectors)
+        ax.set(ylabel="test PSNR change from clean (dB)", title=f"{base} / {protocol}: stress")
+        ax.legend(fontsize=8)
+        fig.tight_layout()
+        path = out / f"{base}-{protocol}-stress.png"
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+        paths.append(path)
+    return paths
+
+
 def stress_table(rows: List[dict]) -> str:
     """Test PSNR per selector on the clean scene and under each perturbation (mean over seeds), with the change
     from clean in dB; "" when no row is from a perturbed scene."""
@@ -286,10 +329,7 @@ def stress_table(rows: List[dict]) -> str:
 
     if not any("+" in r["scene"] for r in rows):
         return ""
-    psnr: Dict[Tuple[str, str, str, str], List[float]] = {}
-    for r in rows:
-        base, perturbation = split_scene_name(r["scene"])
-        psnr.setdefault((base, r["protocol"], r["selector"], perturbation), []).append(r["test"]["psnr"])
+    psnr = _mean_psnr(rows)
     order = {name: i for i, name in enumerate(list(SELECTORS) + list(REFERENCES))}
     lines = []
     for base, protocol in sorted({(k[0], k[1]) for k in psnr}):
@@ -303,15 +343,13 @@ def stress_table(rows: List[dict]) -> str:
             "|---|---|" + "---|" * len(perturbations) + "---|",
         ]
         for sel in selectors:
-            clean = psnr.get((base, protocol, sel, "clean"))
-            clean_mean = sum(clean) / len(clean) if clean else None
+            clean_mean = psnr.get((base, protocol, sel, "clean"))
             cells, drops = [], []
             for p in perturbations:
-                values = psnr.get((base, protocol, sel, p))
-                if not values:
+                mean = psnr.get((base, protocol, sel, p))
+                if mean is None:
                     cells.append("–")
                     continue
-                mean = sum(values) / len(values)
                 if clean_mean is None:
                     cells.append(f"{mean:.2f}")
                 else:

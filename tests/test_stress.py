@@ -209,6 +209,7 @@ def test_bench_stress_runs_each_scene_clean_and_perturbed(scene, tmp_path, monke
     ]
     assert sorted(p.name for p in (out / "_scenes").iterdir()) == ["ring+corrupt", "ring+exposure"]
     assert "| random | 20.00 | 18.50 (-1.50) | 18.50 (-1.50) | -1.50 |" in (out / "stress.md").read_text()
+    assert (out / "ring-hpgs-stress.png").stat().st_size > 5_000
     with pytest.raises(SystemExit, match="not a scene folder"):
         bench_module.Bench(scenes=[tmp_path], out=out, stress=["corrupt"]).main()
 
