@@ -4,6 +4,8 @@ One run per (scene, protocol, selector, seed), plus two reference rows per (scen
 `initial` (no views added) and `all` (every training view). Each run writes
 `OUT/<scene>/<protocol>/<selector>/seed<k>.json`; runs whose JSON exists are skipped, so a killed sweep resumes.
 `hpgs bench --report-only` rebuilds the markdown table and the plots from whatever JSON is there.
+`hpgs bench --stress pose-noise exposure corrupt` also runs every scene perturbed (`hpgs_ns/stress.py`): copies
+`OUT/_scenes/<scene>+<perturbation>`, results under `OUT/<scene>+<perturbation>/`, and `stress.md` beside `table.md`.
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ from rich.console import Console
 from rich.table import Table
 
 from hpgs_ns.executors import ExecutorConfig, run_sweep
+from hpgs_ns.stress import PerturbationName, StressConfig, StressError, stress_plot, stress_table, stressed_scenes, write_text_atomic
 
 CONSOLE = Console(stderr=True)
 SELECTORS = ("random", "farthest", "fisher", "hpgs", "condorcet")
@@ -82,7 +85,8 @@ class Bench:
     """Benchmark selectors (test PSNR/SSIM/LPIPS, wall and selection time, memory) on scenes."""
 
     scenes: List[Path] = field(default_factory=list)
-    """Scene folders (Mip-NeRF 360 layout)."""
+    """Scene folders (Mip-NeRF 360 layout), or `synthetic:ring`, `synthetic:occluded`, `synthetic:sparse-objects`
+    for the embedded procedural scenes (generated into OUT/_scenes on first use)."""
     out: Path = Path("benchmarks/results/bench")
     """Results folder (one JSON per run; table and plots beside)."""
     selectors: List[str] = field(default_factory=lambda: list(SELECTORS))
@@ -109,22 +113,39 @@ class Bench:
     """Extra `ns-train hpgs` arguments for every run (quoted)."""
     report_only: bool = False
     """Only rebuild the table and plots from existing JSON."""
+    stress: List[PerturbationName] = field(default_factory=list)
+    """Also run every scene under these perturbations of its training views (copies in OUT/_scenes)."""
+    stress_config: StressConfig = field(default_factory=StressConfig)
+    """Strength and seed of each perturbation."""
     cluster: tyro.conf.OmitArgPrefixes[ExecutorConfig] = field(default_factory=ExecutorConfig)
     """Where the runs execute (`--executor local|ray|slurm` and its options)."""
 
     def main(self) -> None:
+        if not self.report_only:
+            self.scenes = resolve_scenes(self.scenes, self.out / "_scenes")
+        if self.stress and not self.report_only:
+            try:
+                self.scenes = stressed_scenes(self.scenes, self.stress, self.out / "_scenes", self.stress_config)
+            except StressError as err:
+                raise SystemExit(f"hpgs bench: {err}") from None
         if not self.report_only:
             self.run_all()
         rows = load_results(self.out)
         if not rows:
             raise SystemExit(f"hpgs bench: no results under {self.out}")
         table = markdown_table(rows)
-        (self.out / "table.md").write_text(table)
+        write_text_atomic(self.out / "table.md", table)
         print(table)
         work = work_table(rows)
         if work:
-            (self.out / "work.md").write_text(work)
+            write_text_atomic(self.out / "work.md", work)
             print(work)
+        stress = stress_table(rows)
+        if stress:
+            write_text_atomic(self.out / "stress.md", stress)
+            print(stress)
+            for path in stress_plot(rows, self.out):
+                CONSOLE.print(f"plot: {path}")
         for path in make_plots(rows, self.out):
             CONSOLE.print(f"plot: {path}")
 
@@ -150,6 +171,31 @@ class Bench:
             CONSOLE.print(f"[yellow]--max-runs {self.max_runs}: {len(todo) - self.max_runs} runs left; run again to continue")
             todo = todo[: self.max_runs]
         run_sweep(self, todo, self.cluster)
+
+
+SYNTHETIC = "synthetic:"
+
+
+def resolve_scenes(scenes: Sequence[Path], folder: Path) -> List[Path]:
+    """`synthetic:<layout>` (ring, occluded, sparse-objects) -> the embedded procedural scene of that layout,
+    generated into `folder/synthetic-<layout>` on first use; other entries are scene folders, returned as given."""
+    from hpgs_ns.synthetic_scene import LAYOUTS, make_scene
+
+    out = []
+    for scene in scenes:
+        text = str(scene)
+        if not text.startswith(SYNTHETIC):
+            out.append(Path(scene))
+            continue
+        layout = text[len(SYNTHETIC):]
+        if layout not in LAYOUTS:
+            raise SystemExit(f"hpgs bench: unknown synthetic scene {text!r}; use synthetic:" + " or synthetic:".join(LAYOUTS))
+        path = folder / f"synthetic-{layout}"
+        if not (path / "sparse" / "0").is_dir():
+            CONSOLE.print(f"generating {text} into {path}")
+            make_scene(path, layout=layout, seed=0, overwrite=True)
+        out.append(path)
+    return out
 
 
 def result_path(out: Path, scene: Path, protocol: str, name: str, seed: int) -> Path:

@@ -5,7 +5,9 @@ from __future__ import annotations
 import json
 import math
 
-from hpgs_ns.bench import Bench, fisherrf_schedule, load_results, markdown_table, summed_work, work_table
+import pytest
+
+from hpgs_ns.bench import Bench, fisherrf_schedule, load_results, markdown_table, resolve_scenes, summed_work, work_table
 
 KEYS = {
     "scene", "protocol", "selector", "seed", "steps", "test", "psnr_per_round", "wall_seconds", "selection_seconds",
@@ -59,3 +61,16 @@ def test_work_table_shows_what_selection_skipped():
     table = work_table([row, {**row, "selector": "random", "selection_work": {}}])
     assert "| s | hpgs | fisher | 20 | 25% | 25% | 16 | 0 | 1.5 |" in table
     assert "random" not in table  # selectors that compute nothing have no row
+
+
+def test_synthetic_scenes_are_generated_once_by_name(tmp_path, tiny_scene):
+    first = resolve_scenes([tiny_scene, "synthetic:sparse-objects"], tmp_path)
+    assert first[0] == tiny_scene
+    made = first[1]
+    assert made == tmp_path / "synthetic-sparse-objects" and (made / "sparse" / "0").is_dir()
+    assert len(list((made / "images").glob("*.png"))) == 48
+    stamp = (made / "ground_truth.json").stat().st_mtime
+    assert resolve_scenes(["synthetic:sparse-objects"], tmp_path) == [made]
+    assert (made / "ground_truth.json").stat().st_mtime == stamp  # reused, not regenerated
+    with pytest.raises(SystemExit, match="unknown synthetic scene 'synthetic:cube'"):
+        resolve_scenes(["synthetic:cube"], tmp_path)

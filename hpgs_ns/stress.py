@@ -1,0 +1,361 @@
+"""Stress mode for `hpgs bench`: perturbed copies of a scene, and how much each selector loses on them.
+
+Each perturbation writes a copy of a Mip-NeRF 360 scene folder (`images/`, `images_N/`, `sparse/0/`) named
+`<scene>+<perturbation>`, and touches the *training* views only: the test split (every 8th image in file-name
+order) keeps its exact images and poses, so clean and perturbed runs are scored on the same test set.
+
+- `pose-noise`: seeded Gaussian rotation and camera-centre noise on the COLMAP poses (a miscalibrated SfM);
+- `exposure`: seeded per-image gain and gamma (auto-exposure, changing light);
+- `corrupt`: a few image files truncated or emptied (a bad copy); the dataparser drops them with a warning.
+
+Copies are built in a temp folder and renamed into place; a copy whose `stress.json` records the same source
+and strengths is reused. Image files a perturbation does not change are hard links to the source's.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import tempfile
+import zlib
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Dict, List, Literal, Optional, Sequence, Tuple
+
+import numpy as np
+from rich.console import Console
+
+CONSOLE = Console(stderr=True)
+STRESS_FILE = "stress.json"
+EVAL_INTERVAL = 8  # the dataparser's Mip-NeRF 360 rule: every 8th image in file-name order is a test view
+
+PerturbationName = Literal["pose-noise", "exposure", "corrupt"]
+
+
+class StressError(ValueError):
+    """A scene cannot be perturbed (not a scene folder, too few training views)."""
+
+
+@dataclass
+class PoseNoise:
+    """Gaussian noise on the training views' COLMAP poses: each camera turns about a random axis and its centre
+    moves; 3D points and 2D keypoints stay, as after a bundle adjustment that did not converge."""
+
+    translation: float = 0.02
+    """RMS camera-centre displacement, as a fraction of the cameras' RMS distance from their mean centre."""
+    rotation_deg: float = 1.0
+    """RMS rotation angle in degrees."""
+
+    def apply(self, scene: Path, train: Sequence[str], rng: np.random.Generator) -> dict:
+        import pycolmap
+
+        model = scene / "sparse" / "0"
+        rec = pycolmap.Reconstruction(str(model))
+        by_name = {im.name: im for im in rec.images.values()}
+        centres = np.stack([np.asarray(im.projection_center()) for im in by_name.values()])
+        spread = float(np.sqrt(((centres - centres.mean(0)) ** 2).sum(1).mean()))
+        # Per-axis sigma of 1/sqrt(3) of the target makes the RMS of the 3D vector equal the target.
+        sigma_t = self.translation * spread / math.sqrt(3)
+        sigma_r = math.radians(self.rotation_deg) / math.sqrt(3)
+        moved = {}
+        for name in sorted(train):
+            im = by_name[name]
+            cam_from_world = im.cam_from_world().matrix()
+            rotation, centre = cam_from_world[:, :3], np.asarray(im.projection_center())
+            axis_angle = rng.normal(0.0, sigma_r, 3)
+            shift = rng.normal(0.0, sigma_t, 3)
+            # World-from-camera rotation turned by `noise` (in the world frame), centre shifted.
+            new_rotation = rotation @ rodrigues(axis_angle).T
+            new_centre = centre + shift
+            pose = pycolmap.Rigid3d(pycolmap.Rotation3d(new_rotation), -new_rotation @ new_centre)
+            rec.frames[im.frame_id].set_cam_from_world(im.camera_id, pose)
+            moved[name] = {"rotation_deg": math.degrees(float(np.linalg.norm(axis_angle))), "translation": float(np.linalg.norm(shift))}
+        # The model files may be shared with nothing (sparse/ is copied, not linked), but write beside and rename anyway.
+        tmp = Path(tempfile.mkdtemp(prefix=".model-", dir=model.parent))
+        rec.write(str(tmp))
+        for path in tmp.iterdir():
+            os.replace(path, model / path.name)
+        tmp.rmdir()
+        rms = lambda key: math.sqrt(sum(m[key] ** 2 for m in moved.values()) / max(len(moved), 1))  # noqa: E731
+        return {"camera_spread": spread, "rms_rotation_deg": rms("rotation_deg"), "rms_translation": rms("translation"), "views": moved}
+
+
+@dataclass
+class Exposure:
+    """Per-image exposure changes on the training views: `out = gain * in ** gamma` on [0, 1] colours, with a
+    seeded gain and gamma per image (every resolution of an image gets the same pair)."""
+
+    gain: Tuple[float, float] = (0.6, 1.4)
+    """Range of the uniform random gain."""
+    gamma: Tuple[float, float] = (0.8, 1.25)
+    """Range of the gamma (log-uniform, so 0.8 and 1.25 are equally likely)."""
+
+    def apply(self, scene: Path, train: Sequence[str], rng: np.random.Generator) -> dict:
+        from PIL import Image
+
+        changed = {}
+        for name in sorted(train):
+            gain = float(rng.uniform(*self.gain))
+            gamma = float(math.exp(rng.uniform(math.log(self.gamma[0]), math.log(self.gamma[1]))))
+            changed[name] = {"gain": gain, "gamma": gamma}
+            lut = np.clip(np.round(255 * gain * (np.arange(256) / 255) ** gamma), 0, 255).astype(np.uint8)
+            for path in _image_copies(scene, name):
+                with Image.open(path) as image:
+                    fmt, mode = image.format, image.mode
+                    pixels = np.asarray(image.convert("RGBA" if "A" in mode else "RGB")).copy()
+                pixels[..., :3] = lut[pixels[..., :3]]  # alpha untouched
+                _replace_file(path, lambda tmp: Image.fromarray(pixels).save(tmp, format=fmt, quality=95))
+        return {"views": changed}
+
+
+@dataclass
+class Corrupt:
+    """A few training images made unreadable (truncated to a fraction of their bytes, or emptied), in every
+    resolution folder: what a bad copy or a full disk leaves behind."""
+
+    count: int = 3
+    """Number of training images to corrupt."""
+    keep_fraction: float = 0.4
+    """Truncated files keep this fraction of their bytes (every other corrupted file is emptied instead)."""
+
+    def apply(self, scene: Path, train: Sequence[str], rng: np.random.Generator) -> dict:
+        if not 0 < self.count < len(train):
+            raise StressError(f"corrupt count {self.count} must be between 1 and {len(train) - 1} (the training views)")
+        chosen = sorted(rng.choice(sorted(train), size=self.count, replace=False).tolist())
+        kinds = {}
+        for k, name in enumerate(chosen):
+            kinds[name] = "truncated" if k % 2 == 0 else "empty"
+            for path in _image_copies(scene, name):
+                data = path.read_bytes()
+                cut = data[: int(len(data) * self.keep_fraction)] if kinds[name] == "truncated" else b""
+                _replace_file(path, lambda tmp: Path(tmp).write_bytes(cut))
+        return {"views": kinds}
+
+
+@dataclass
+class StressConfig:
+    """Strengths of the `hpgs bench --stress` perturbations."""
+
+    seed: int = 0
+    """Seed for every perturbation's random draws."""
+    pose_noise: PoseNoise = field(default_factory=PoseNoise)
+    exposure: Exposure = field(default_factory=Exposure)
+    corrupt: Corrupt = field(default_factory=Corrupt)
+
+    def perturbation(self, name: str):
+        table = {"pose-noise": self.pose_noise, "exposure": self.exposure, "corrupt": self.corrupt}
+        if name not in table:
+            raise StressError(f"unknown perturbation {name!r}; choose from {', '.join(table)}")
+        return table[name]
+
+
+def rodrigues(axis_angle: np.ndarray) -> np.ndarray:
+    """Rotation matrix [3, 3] of a rotation vector [3] (axis times angle in radians)."""
+    angle = float(np.linalg.norm(axis_angle))
+    if angle < 1e-12:
+        return np.eye(3)
+    k = axis_angle / angle
+    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + math.sin(angle) * kx + (1 - math.cos(angle)) * kx @ kx
+
+
+def split_names(scene: Path) -> Tuple[List[str], List[str]]:
+    """(training, test) image names of a scene: the COLMAP model's images in file-name order, every 8th a test
+    view, as the dataparser splits them."""
+    from nerfstudio.data.utils import colmap_parsing_utils as colmap_utils
+
+    model = scene / "sparse" / "0"
+    if (model / "images.bin").exists():
+        images = colmap_utils.read_images_binary(model / "images.bin")
+    elif (model / "images.txt").exists():
+        images = colmap_utils.read_images_text(model / "images.txt")
+    else:
+        raise StressError(f"{scene} is not a scene folder (no sparse/0/images.bin); pass a Mip-NeRF 360 style scene")
+    names = sorted(Path(im.name).name for im in images.values())
+    return [n for i, n in enumerate(names) if i % EVAL_INTERVAL != 0], [n for i, n in enumerate(names) if i % EVAL_INTERVAL == 0]
+
+
+def perturbed_copy(scene: Path, name: str, out_dir: Path, config: Optional[StressConfig] = None) -> Path:
+    """`out_dir/<scene>+<name>`: the scene with perturbation `name` applied to its training views. Reused when it
+    exists with the same source and strengths; rebuilt (temp folder, then rename) otherwise."""
+    config = config or StressConfig()
+    scene = Path(scene).resolve()
+    perturbation = config.perturbation(name)
+    if not (scene / "sparse" / "0").is_dir():
+        raise StressError(f"{scene} is not a scene folder (no sparse/0); pass a Mip-NeRF 360 style scene")
+    target = Path(out_dir) / f"{scene.name}+{name}"
+    params = {"source": str(scene), "perturbation": name, "seed": config.seed, "strength": asdict(perturbation)}
+    params = json.loads(json.dumps(params))  # tuples as lists, as read back from stress.json
+    if target.is_dir():
+        try:
+            if json.loads((target / STRESS_FILE).read_text())["params"] == params:
+                return target
+        except (OSError, ValueError, KeyError):
+            pass
+        CONSOLE.print(f"[yellow]{target} was made from another source or strength; rebuilding it")
+    train, _ = split_names(scene)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}-", dir=target.parent))
+    try:
+        _copy_scene(scene, tmp / "scene")
+        # One stream per perturbation, so adding a perturbation never changes another's draws.
+        rng = np.random.default_rng([config.seed, zlib.crc32(name.encode())])
+        report = perturbation.apply(tmp / "scene", train, rng)
+        _write_json(tmp / "scene" / STRESS_FILE, {"params": params, "report": report})
+        if target.exists():
+            os.rename(target, tmp / "old")
+        os.rename(tmp / "scene", target)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return target
+
+
+def stressed_scenes(scenes: Sequence[Path], names: Sequence[str], out_dir: Path, config: Optional[StressConfig] = None) -> List[Path]:
+    """The scenes followed by each scene's perturbed copies (`hpgs bench --stress`)."""
+    copies = []
+    for scene in scenes:
+        for name in names:
+            copy = perturbed_copy(scene, name, out_dir, config)
+            CONSOLE.print(f"stress: {copy}")
+            copies.append(copy)
+    return list(scenes) + copies
+
+
+def _copy_scene(source: Path, dest: Path) -> None:
+    """Copy a scene folder; image files are hard-linked (perturbations replace files, never write into them),
+    everything else is copied."""
+    for root, _, files in os.walk(source):
+        rel = Path(root).relative_to(source)
+        (dest / rel).mkdir(parents=True, exist_ok=True)
+        linkable = rel.parts and rel.parts[0].startswith("images")
+        for f in files:
+            src, dst = Path(root) / f, dest / rel / f
+            if linkable:
+                try:
+                    os.link(src, dst)
+                    continue
+                except OSError:  # another filesystem
+                    pass
+            shutil.copy2(src, dst)
+    os.chmod(dest, 0o755)
+
+
+def _image_copies(scene: Path, name: str) -> List[Path]:
+    """Every resolution of image `name`: `images/name`, `images_2/name`, ... that exist."""
+    return sorted(p / name for p in scene.iterdir() if p.is_dir() and p.name.startswith("images") and (p / name).is_file())
+
+
+def _replace_file(path: Path, write) -> None:
+    """Write a new file beside `path` with `write(tmp_path)`, then rename it over `path` (which may be a hard link
+    to the source scene's file: renaming over it leaves the source alone)."""
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix, dir=path.parent)
+    os.close(fd)
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def _write_json(path: Path, payload) -> None:
+    _replace_file(path, lambda tmp: Path(tmp).write_text(json.dumps(payload, indent=1) + "\n"))
+
+
+def write_text_atomic(path: Path, text: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    _replace_file(path, lambda tmp: Path(tmp).write_text(text))
+
+
+# ------------------------------------------------------------------------------------------------------------
+# Report
+
+
+def split_scene_name(scene: str) -> Tuple[str, str]:
+    """`"ring+exposure"` -> `("ring", "exposure")`; a clean scene's perturbation is `"clean"`."""
+    base, _, perturbation = scene.partition("+")
+    return base, perturbation or "clean"
+
+
+def _mean_psnr(rows: List[dict]) -> Dict[Tuple[str, str, str, str], float]:
+    """(base scene, protocol, selector, perturbation) -> mean test PSNR over seeds."""
+    values: Dict[Tuple[str, str, str, str], List[float]] = {}
+    for r in rows:
+        base, perturbation = split_scene_name(r["scene"])
+        values.setdefault((base, r["protocol"], r["selector"], perturbation), []).append(r["test"]["psnr"])
+    return {k: sum(v) / len(v) for k, v in values.items()}
+
+
+def stress_plot(rows: List[dict], out: Path) -> List[Path]:
+    """Per (scene, protocol): bars of the PSNR change from clean, one group per selector, one bar per perturbation."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from hpgs_ns.bench import REFERENCES, SELECTORS
+
+    psnr = _mean_psnr(rows)
+    order = {name: i for i, name in enumerate(list(SELECTORS) + list(REFERENCES))}
+    paths = []
+    for base, protocol in sorted({k[:2] for k in psnr if k[3] != "clean"}):
+        keys = [k for k in psnr if k[:2] == (base, protocol)]
+        perturbations = sorted({k[3] for k in keys if k[3] != "clean"})
+        selectors = sorted({k[2] for k in keys if (base, protocol, k[2], "clean") in psnr}, key=lambda s: (order.get(s, 99), s))
+        fig, ax = plt.subplots(figsize=(1.4 * len(selectors) + 2, 3.6))
+        width = 0.8 / len(perturbations)
+        for j, p in enumerate(perturbations):
+            xs = [i + (j - (len(perturbations) - 1) / 2) * width for i in range(len(selectors))]
+            drops = [psnr.get((base, protocol, s, p), float("nan")) - psnr[(base, protocol, s, "clean")] for s in selectors]
+            ax.bar(xs, drops, width, label=p)
+        ax.axhline(0, color="k", lw=0.8)
+        ax.set_xticks(range(len(selectors)), selectors)
+        ax.set(ylabel="test PSNR change from clean (dB)", title=f"{base} / {protocol}: stress")
+        ax.legend(fontsize=8)
+        fig.tight_layout()
+        path = out / f"{base}-{protocol}-stress.png"
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+        paths.append(path)
+    return paths
+
+
+def stress_table(rows: List[dict]) -> str:
+    """Test PSNR per selector on the clean scene and under each perturbation (mean over seeds), with the change
+    from clean in dB; "" when no row is from a perturbed scene."""
+    from hpgs_ns.bench import REFERENCES, SELECTORS
+
+    if not any("+" in r["scene"] for r in rows):
+        return ""
+    psnr = _mean_psnr(rows)
+    order = {name: i for i, name in enumerate(list(SELECTORS) + list(REFERENCES))}
+    lines = []
+    for base, protocol in sorted({(k[0], k[1]) for k in psnr}):
+        keys = [k for k in psnr if k[:2] == (base, protocol)]
+        perturbations = sorted({k[3] for k in keys if k[3] != "clean"})
+        selectors = sorted({k[2] for k in keys}, key=lambda s: (order.get(s, 99), s))
+        lines += [
+            f"**{base} / {protocol}**: test PSNR (dB), mean over seeds; in brackets the change from clean",
+            "",
+            "| selector | clean | " + " | ".join(perturbations) + " | mean change |",
+            "|---|---|" + "---|" * len(perturbations) + "---|",
+        ]
+        for sel in selectors:
+            clean_mean = psnr.get((base, protocol, sel, "clean"))
+            cells, drops = [], []
+            for p in perturbations:
+                mean = psnr.get((base, protocol, sel, p))
+                if mean is None:
+                    cells.append("–")
+                    continue
+                if clean_mean is None:
+                    cells.append(f"{mean:.2f}")
+                else:
+                    drops.append(mean - clean_mean)
+                    cells.append(f"{mean:.2f} ({mean - clean_mean:+.2f})")
+            avg = f"{sum(drops) / len(drops):+.2f}" if drops else "–"
+            lines.append(f"| {sel} | {'–' if clean_mean is None else f'{clean_mean:.2f}'} | {' | '.join(cells)} | {avg} |")
+        lines.append("")
+    return "\n".join(lines)
