@@ -194,7 +194,7 @@ def test_bench_stress_runs_each_scene_clean_and_perturbed(scene, tmp_path, monke
     """`hpgs bench --stress` wiring, with training replaced by a stub that records which scene it was given."""
     from hpgs_ns import bench as bench_module
 
-    def fake_run(bench, scene_dir, protocol, name, seed):
+    def fake_run(bench, scene_dir, protocol, name, seed, env=None):
         parse(scene_dir)  # the real dataparser must accept the perturbed copy
         psnr = 20.0 - 1.5 * ("+" in scene_dir.name)
         return {"scene": scene_dir.name, "protocol": protocol.name, "selector": name, "seed": seed, "test": {"psnr": psnr, "ssim": 0.5, "lpips": 0.3},
