@@ -444,12 +444,10 @@ def camera_centres(scene: Path) -> Optional[Dict[str, Tuple[float, float]]]:
     import numpy as np
     from nerfstudio.data.utils import colmap_parsing_utils as colmap_utils
 
-    model = scene / "sparse" / "0"
-    if (model / "images.bin").exists():
-        images = colmap_utils.read_images_binary(model / "images.bin")
-    elif (model / "images.txt").exists():
-        images = colmap_utils.read_images_text(model / "images.txt")
-    else:
+    from hpgs_ns.dataparser import read_colmap_images
+
+    images = read_colmap_images(scene)
+    if images is None:
         return None
     names = [im.name for im in images.values()]
     centres = np.stack([-colmap_utils.qvec2rotmat(im.qvec).T @ im.tvec for im in images.values()])

@@ -186,3 +186,16 @@ def image_problem(path: Path) -> Optional[str]:
     except Exception as err:  # PIL raises OSError, SyntaxError, struct.error, ... for damaged files
         return "truncated" if "truncated" in str(err).lower() else (str(err) or type(err).__name__)
     return None
+
+
+def read_colmap_images(scene: Path) -> Optional[dict]:
+    """The images (id -> COLMAP Image: name, qvec, tvec) of a scene folder's `sparse/0` model, binary or text;
+    None when the folder has no model."""
+    from nerfstudio.data.utils import colmap_parsing_utils as colmap_utils
+
+    model = Path(scene) / "sparse" / "0"
+    if (model / "images.bin").exists():
+        return colmap_utils.read_images_binary(model / "images.bin")
+    if (model / "images.txt").exists():
+        return colmap_utils.read_images_text(model / "images.txt")
+    return None

@@ -164,14 +164,10 @@ def rodrigues(axis_angle: np.ndarray) -> np.ndarray:
 def split_names(scene: Path) -> Tuple[List[str], List[str]]:
     """(training, test) image names of a scene: the COLMAP model's images in file-name order, every 8th a test
     view, as the dataparser splits them."""
-    from nerfstudio.data.utils import colmap_parsing_utils as colmap_utils
+    from hpgs_ns.dataparser import read_colmap_images
 
-    model = scene / "sparse" / "0"
-    if (model / "images.bin").exists():
-        images = colmap_utils.read_images_binary(model / "images.bin")
-    elif (model / "images.txt").exists():
-        images = colmap_utils.read_images_text(model / "images.txt")
-    else:
+    images = read_colmap_images(scene)
+    if images is None:
         raise StressError(f"{scene} is not a scene folder (no sparse/0/images.bin); pass a Mip-NeRF 360 style scene")
     names = sorted(Path(im.name).name for im in images.values())
     return [n for i, n in enumerate(names) if i % EVAL_INTERVAL != 0], [n for i, n in enumerate(names) if i % EVAL_INTERVAL == 0]
