@@ -72,7 +72,7 @@ class PoseNoise:
             pose = pycolmap.Rigid3d(pycolmap.Rotation3d(new_rotation), -new_rotation @ new_centre)
             rec.frames[im.frame_id].set_cam_from_world(im.camera_id, pose)
             moved[name] = {"rotation_deg": math.degrees(float(np.linalg.norm(axis_angle))), "translation": float(np.linalg.norm(shift))}
-        # The model files may be shared with nothing (sparse/ is copied, not linked), but write beside and rename anyway.
+        # Written beside and renamed in, so the model is never half old, half new.
         tmp = Path(tempfile.mkdtemp(prefix=".model-", dir=model.parent))
         rec.write(str(tmp))
         for path in tmp.iterdir():
