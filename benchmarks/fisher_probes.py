@@ -32,6 +32,7 @@ def main() -> None:
     ap.add_argument("--out", type=Path, required=True, help="JSON to write")
     ap.add_argument("--probes", type=int, nargs="+", default=[4, 8, 16, 32, 64])
     ap.add_argument("--reference", type=int, default=256)
+    ap.add_argument("--view-batch", type=int, nargs="+", default=[32], help="views per batched render (each is timed)")
     ap.add_argument("--repeats", type=int, default=3, help="seeds per K (the spread of the estimate)")
     args = ap.parse_args()
 
@@ -43,39 +44,42 @@ def main() -> None:
     _, pipeline, _, step = eval_setup(args.run / "config.yml", test_mode="test")
     dm, model = pipeline.datamanager, pipeline.model
 
-    def scores(k: int, seed: int) -> Dict[int, float]:
+    def scores(k: int, seed: int, view_batch: int = 32) -> Dict[int, float]:
         ctx = dm.selection_context(step, model)
         ctx.generator = torch.Generator().manual_seed(seed)
         ctx.num_to_pick = 1
-        return FisherSelectorConfig(probes=k).setup().select(ctx).scores
+        return FisherSelectorConfig(probes=k, view_batch=view_batch).setup().select(ctx).scores
 
+    t = time.perf_counter()
     scores(4, 0)  # warm-up (CUDA kernels, allocator)
+    first_call = time.perf_counter() - t
+    print(f"first call (K=4, one-off set-up included): {first_call:.2f} s", flush=True)
     ref = scores(args.reference, 12345)
     order = sorted(ref)
     ref_list = [ref[c] for c in order]
     best = max(ref, key=ref.get)
     rows = []
-    for k in args.probes:
+    for vb, k in [(vb, k) for vb in args.view_batch for k in args.probes]:
         rhos, tops, secs = [], [], []
         for seed in range(args.repeats):
             if torch.cuda.is_available():
                 torch.cuda.synchronize()
             t = time.perf_counter()
-            s = scores(k, seed)
+            s = scores(k, seed, vb)
             if torch.cuda.is_available():
                 torch.cuda.synchronize()
             secs.append(time.perf_counter() - t)
             rhos.append(spearman([s[c] for c in order], ref_list))
             tops.append(max(s, key=s.get) == best)
-        row = {"probes": k, "seconds_per_round": sum(secs) / len(secs), "spearman_vs_reference": sum(rhos) / len(rhos),
+        row = {"probes": k, "view_batch": vb, "seconds_per_round": sum(secs) / len(secs), "spearman_vs_reference": sum(rhos) / len(rhos),
                "spearman_min": min(rhos), "top_pick_agrees": sum(tops) / len(tops)}
         rows.append(row)
-        print(f"K={k:4d}  {row['seconds_per_round']:7.2f} s/round  Spearman {row['spearman_vs_reference']:.3f} "
+        print(f"K={k:4d} view_batch={vb:4d}  {row['seconds_per_round']:7.2f} s/round  Spearman {row['spearman_vs_reference']:.3f} "
               f"(min {row['spearman_min']:.3f})  top pick agrees {100 * row['top_pick_agrees']:.0f}%", flush=True)
     device = torch.cuda.get_device_name(0) if torch.cuda.is_available() else f"cpu ({platform.processor() or 'x86_64'})"
     write_json_atomic(args.out, {
         "run": str(args.run), "step": step, "gaussians": int(model.num_points), "candidates": len(ref),
-        "active": len(dm.active), "reference_probes": args.reference, "device": device, "rows": rows,
+        "active": len(dm.active), "reference_probes": args.reference, "first_call_seconds": first_call, "device": device, "rows": rows,
     })
 
 

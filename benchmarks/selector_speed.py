@@ -25,6 +25,7 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=2000)
     ap.add_argument("--downscale-factor", type=int, default=2)
     ap.add_argument("--selectors", nargs="+", default=["random", "farthest", "hpgs", "fisher", "condorcet"])
+    ap.add_argument("--rounds", type=int, default=1, help="rounds, evenly spaced; the first pays one-off CUDA set-up")
     ap.add_argument("--extra", default="", help="extra ns-train arguments")
     args = ap.parse_args()
     results = []
@@ -34,17 +35,21 @@ def main() -> None:
             "--output-dir", str(args.out / "runs"), "--experiment-name", "speed", "--timestamp", sel,
             "--vis", "tensorboard", "--max-num-iterations", str(args.steps + 1), "--steps-per-save", str(10 * args.steps),
             "--steps-per-eval-all-images", str(10 * args.steps), "--steps-per-eval-image", str(10 * args.steps),
-            "--pipeline.datamanager.select-every", str(args.steps), "--pipeline.datamanager.max-rounds", "1",
+            "--pipeline.datamanager.select-every", str(args.steps // args.rounds),
+            "--pipeline.datamanager.max-rounds", str(args.rounds),
             "--pipeline.datamanager.selector", sel,
             "--pipeline.datamanager.dataparser.downscale-factor", str(args.downscale_factor), *args.extra.split(),
         ]
         start = time.perf_counter()
-        subprocess.run(cmd, check=True, capture_output=True)
+        proc = subprocess.run(cmd, capture_output=True, text=True)
+        if proc.returncode != 0:
+            raise SystemExit(f"selector_speed: {sel} run failed:\n" + "\n".join(proc.stderr.splitlines()[-30:]))
         log = json.loads((args.out / "runs" / "speed" / "hpgs" / sel / "selected_views.json").read_text())
         ckpt = sorted((args.out / "runs" / "speed" / "hpgs" / sel / "nerfstudio_models").glob("*.ckpt"))[-1]
         n = torch.load(ckpt, map_location="cpu", weights_only=True)["pipeline"]["_model.gauss_params.means"].shape[0]
-        r = log["rounds"][0]
-        row = {"selector": sel, "round_seconds": r["seconds"], "candidates": len(r["scores"]),
+        r = log["rounds"][-1]
+        row = {"selector": sel, "round_seconds": r["seconds"], "all_round_seconds": [x["seconds"] for x in log["rounds"]],
+               "work": r.get("work", {}), "candidates": len(r["scores"]),
                "active_before": r["num_active"] - len(r["chosen"]), "gaussians": int(n), "chosen": r["chosen"],
                "wall_seconds": time.perf_counter() - start,
                "device": torch.cuda.get_device_name(0) if torch.cuda.is_available() else "cpu"}

@@ -23,7 +23,9 @@ from typing import Any, Callable, Dict, List, Literal, Optional, Type, Union
 import torch
 from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.models import splatfacto
-from nerfstudio.models.splatfacto import SplatfactoModel, SplatfactoModelConfig, get_viewmat
+from nerfstudio.models.splatfacto import SplatfactoModel, SplatfactoModelConfig
+
+from hpgs_ns.viewmats import world_to_camera
 
 
 class RasterizerUnavailableError(RuntimeError):
@@ -188,7 +190,7 @@ class HpgsSplatfactoModel(SplatfactoModel):
 
         scale_fac = self._get_downscale_factor()
         camera.rescale_output_resolution(1 / scale_fac)
-        viewmat = get_viewmat(camera_to_world)
+        viewmat = world_to_camera(camera_to_world)
         K = camera.get_intrinsics_matrices().to(self.device)
         W, H = int(camera.width.item()), int(camera.height.item())
         self.last_size = (H, W)
@@ -255,7 +257,7 @@ class HpgsSplatfactoModel(SplatfactoModel):
         render, alpha, _ = self._rasterize(
             means=self.means, quats=self.quats, scales=torch.exp(self.scales),
             opacities=torch.sigmoid(self.opacities).squeeze(-1), colors=colors,
-            viewmats=get_viewmat(cameras.camera_to_worlds.reshape(-1, 3, 4)).to(self.device), Ks=cameras.get_intrinsics_matrices().reshape(-1, 3, 3).to(self.device),
+            viewmats=world_to_camera(cameras.camera_to_worlds.reshape(-1, 3, 4)).to(self.device), Ks=cameras.get_intrinsics_matrices().reshape(-1, 3, 3).to(self.device),
             width=W, height=H, packed=False, near_plane=0.01, far_plane=1e10, render_mode="RGB",
             sh_degree=sh_degree, sparse_grad=False, absgrad=False, rasterize_mode=self.config.rasterize_mode,
         )

@@ -34,6 +34,7 @@ from nerfstudio.configs.base_config import InstantiateConfig
 from hpgs_ns.model import resolve_rasterizer
 from hpgs_ns.pair_render import PairRender, render_pairs
 from hpgs_ns.selectors.base import Selection, SelectionContext, SelectionError, eval_mode
+from hpgs_ns.viewmats import world_to_camera
 
 FISHER_PARAMS = ("means", "features_dc", "features_rest", "scales", "opacities")
 
@@ -95,8 +96,6 @@ class FisherSelector:
 
     def batches(self, context: SelectionContext, views: Sequence[int]) -> Iterator[ViewBatch]:
         """`views` grouped by rendered size, at most `view_batch` per group."""
-        from nerfstudio.models.splatfacto import get_viewmat
-
         device = torch.device(context.model.device)
         cameras = context.cameras[torch.tensor([int(v) for v in views], dtype=torch.long)]
         if self.config.resolution_scale != 1.0:
@@ -110,7 +109,7 @@ class FisherSelector:
                 cams = cameras[chunk]
                 yield ViewBatch(
                     views=[int(views[k]) for k in chunk],
-                    viewmats=get_viewmat(cams.camera_to_worlds.reshape(-1, 3, 4)).to(device),
+                    viewmats=world_to_camera(cams.camera_to_worlds.reshape(-1, 3, 4)).to(device),
                     Ks=cams.get_intrinsics_matrices().reshape(-1, 3, 3).to(device),
                     width=W,
                     height=H,
