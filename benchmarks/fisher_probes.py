@@ -33,6 +33,8 @@ def main() -> None:
     ap.add_argument("--probes", type=int, nargs="+", default=[4, 8, 16, 32, 64])
     ap.add_argument("--reference", type=int, default=256)
     ap.add_argument("--view-batch", type=int, nargs="+", default=[32], help="views per batched render (each is timed)")
+    ap.add_argument("--profile", type=Path, default=None,
+                    help="also profile one round at the default K with torch.profiler and write its op table here")
     ap.add_argument("--repeats", type=int, default=3, help="seeds per K (the spread of the estimate)")
     args = ap.parse_args()
 
@@ -54,6 +56,18 @@ def main() -> None:
     scores(4, 0)  # warm-up (CUDA kernels, allocator)
     first_call = time.perf_counter() - t
     print(f"first call (K=4, one-off set-up included): {first_call:.2f} s", flush=True)
+    if args.profile is not None:
+        from torch.profiler import ProfilerActivity, profile
+
+        acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if torch.cuda.is_available() else [])
+        with profile(activities=acts) as prof:
+            scores(FisherSelectorConfig().probes, 0)
+            if torch.cuda.is_available():
+                torch.cuda.synchronize()
+        sort = "self_cuda_time_total" if torch.cuda.is_available() else "self_cpu_time_total"
+        table = prof.key_averages().table(sort_by=sort, row_limit=40)
+        args.profile.write_text(table)
+        print(table, flush=True)
     ref = scores(args.reference, 12345)
     order = sorted(ref)
     ref_list = [ref[c] for c in order]
