@@ -74,6 +74,22 @@ class UnsupportedArgumentError(ValueError):
 # ----------------------------------------------------------------------------------------------------------------
 
 
+def _mm(a: Tensor, b: Tensor) -> Tensor:
+    """a @ b for stacks of tiny matrices ([..., n, k] @ [..., k, m]).
+
+    On CUDA as a sum of broadcast outer products, not `@`: for millions of 3x3 matrices batched matmul launches
+    cuBLAS GEMMs tile by tile, which was 82% of the GPU time of a Fisher round on an H100
+    (benchmarks/results/gpu/fisher_profile_h100.txt). On the CPU `@` is the faster one (about 2x)."""
+    return _mm_broadcast(a, b) if a.is_cuda else a @ b
+
+
+def _mm_broadcast(a: Tensor, b: Tensor) -> Tensor:
+    out = a[..., :, 0, None] * b[..., None, 0, :]
+    for k in range(1, a.shape[-1]):
+        out = out + a[..., :, k, None] * b[..., None, k, :]
+    return out
+
+
 def _quat_scale_to_covar(quats: Tensor, scales: Tensor) -> Tensor:
     """Covariance R S S^T R^T from (unnormalised, wxyz) quaternions [..., 4] and scales [..., 3] -> [..., 3, 3]."""
     q = quats * torch.rsqrt((quats * quats).sum(-1, keepdim=True))
@@ -87,7 +103,7 @@ def _quat_scale_to_covar(quats: Tensor, scales: Tensor) -> Tensor:
         dim=-1,
     ).reshape(q.shape[:-1] + (3, 3))
     M = R * scales[..., None, :]
-    return M @ M.transpose(-1, -2)
+    return _mm(M, M.transpose(-1, -2))
 
 
 class _SqrtCompensation(torch.autograd.Function):
@@ -125,8 +141,8 @@ def _project(
     compensations [...], det [...] (of the blurred covariance) and radius [...] (float, not differentiable)."""
     R = viewmats[..., :3, :3]
     t = viewmats[..., :3, 3]
-    mean_c = (R @ means[..., None])[..., 0] + t
-    cov_c = R @ covars @ R.transpose(-1, -2)
+    mean_c = _mm(R, means[..., None])[..., 0] + t
+    cov_c = _mm(_mm(R, covars), R.transpose(-1, -2))
     x, y, z = mean_c.unbind(-1)
     fx, fy, cx, cy = Ks[..., 0, 0], Ks[..., 1, 1], Ks[..., 0, 2], Ks[..., 1, 2]
     zeros = torch.zeros_like(z)
@@ -146,7 +162,7 @@ def _project(
         J = torch.stack([fx * rz, zeros, -fx * tx * rz2, zeros, fy * rz, -fy * ty * rz2], -1)
         mean2d = torch.stack([fx * x * rz + cx, fy * y * rz + cy], -1)
     J = J.reshape(J.shape[:-1] + (2, 3))
-    cov2d = J @ cov_c @ J.transpose(-1, -2)
+    cov2d = _mm(_mm(J, cov_c), J.transpose(-1, -2))
     a, b, c = cov2d[..., 0, 0], cov2d[..., 0, 1], cov2d[..., 1, 1]
     det_orig = a * c - b * b
     a = a + eps2d
@@ -208,7 +224,10 @@ def _sh_bases(degree: int, dirs: Tensor) -> Tensor:
 def _sh_to_color(degree: int, dirs: Tensor, coeffs: Tensor) -> Tensor:
     """dirs [M, 3], coeffs [M, K, 3] with (degree+1)^2 <= K -> colors [M, 3] (before the +0.5 and clamp)."""
     k = (degree + 1) ** 2
-    return torch.einsum("mk,mkc->mc", _sh_bases(degree, dirs), coeffs[:, :k, :])
+    bases = _sh_bases(degree, dirs)
+    if bases.is_cuda:  # einsum would be a batched GEMV, slow on CUDA for M in the millions (see _mm)
+        return (bases[:, :, None] * coeffs[:, :k, :]).sum(1)
+    return torch.einsum("mk,mkc->mc", bases, coeffs[:, :k, :])
 
 
 # ----------------------------------------------------------------------------------------------------------------

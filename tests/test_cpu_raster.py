@@ -645,3 +645,14 @@ def test_randomised_against_reference(seed, n, width, height, n_cameras, packed,
         ref = g_ref[k] if g_ref[k] is not None else torch.zeros_like(g[k])  # nothing visible: zero gradient
         assert torch.isfinite(g[k]).all()
         assert float((g[k] - ref).norm()) <= 1e-8 * (1 + float(ref.norm())), k
+
+
+def test_small_matmul_broadcast_path_equals_matmul():
+    # The CUDA path of the projection (broadcast outer products) must be the same maths as `@` (the CPU path).
+    from hpgs_ns.cpu_raster import _mm_broadcast
+
+    g = torch.Generator().manual_seed(0)
+    for sa, sb in [((5, 3, 3), (5, 3, 3)), ((2, 1, 3, 3), (4, 3, 3)), ((7, 2, 3), (7, 3, 3)), ((6, 3, 3), (6, 3, 1))]:
+        a = torch.randn(*sa, generator=g, dtype=torch.float64)
+        b = torch.randn(*sb, generator=g, dtype=torch.float64)
+        torch.testing.assert_close(_mm_broadcast(a, b), a @ b, rtol=0, atol=1e-12)
