@@ -32,7 +32,8 @@ def main() -> None:
     ap.add_argument("--out", type=Path, required=True, help="JSON to write")
     ap.add_argument("--probes", type=int, nargs="+", default=[4, 8, 16, 32, 64])
     ap.add_argument("--reference", type=int, default=256)
-    ap.add_argument("--view-batch", type=int, nargs="+", default=[32], help="views per batched render (each is timed)")
+    ap.add_argument("--view-batch", type=int, nargs="+", default=None,
+                    help="views per batched render, each timed (default: the selector's default)")
     ap.add_argument("--profile", type=Path, default=None,
                     help="also profile one round at the default K with torch.profiler and write its op table here")
     ap.add_argument("--repeats", type=int, default=3, help="seeds per K (the spread of the estimate)")
@@ -46,7 +47,9 @@ def main() -> None:
     _, pipeline, _, step = eval_setup(args.run / "config.yml", test_mode="test")
     dm, model = pipeline.datamanager, pipeline.model
 
-    def scores(k: int, seed: int, view_batch: int = 32) -> Dict[int, float]:
+    view_batches = args.view_batch or [FisherSelectorConfig().view_batch]
+
+    def scores(k: int, seed: int, view_batch: int = view_batches[0]) -> Dict[int, float]:
         ctx = dm.selection_context(step, model)
         ctx.generator = torch.Generator().manual_seed(seed)
         ctx.num_to_pick = 1
@@ -73,7 +76,7 @@ def main() -> None:
     ref_list = [ref[c] for c in order]
     best = max(ref, key=ref.get)
     rows = []
-    for vb, k in [(vb, k) for vb in args.view_batch for k in args.probes]:
+    for vb, k in [(vb, k) for vb in view_batches for k in args.probes]:
         rhos, tops, secs = [], [], []
         for seed in range(args.repeats):
             if torch.cuda.is_available():

@@ -224,10 +224,7 @@ def _sh_bases(degree: int, dirs: Tensor) -> Tensor:
 def _sh_to_color(degree: int, dirs: Tensor, coeffs: Tensor) -> Tensor:
     """dirs [M, 3], coeffs [M, K, 3] with (degree+1)^2 <= K -> colors [M, 3] (before the +0.5 and clamp)."""
     k = (degree + 1) ** 2
-    bases = _sh_bases(degree, dirs)
-    if bases.is_cuda:  # einsum would be a batched GEMV, slow on CUDA for M in the millions (see _mm)
-        return (bases[:, :, None] * coeffs[:, :k, :]).sum(1)
-    return torch.einsum("mk,mkc->mc", bases, coeffs[:, :k, :])
+    return _mm(_sh_bases(degree, dirs)[:, None, :], coeffs[:, :k, :])[:, 0]
 
 
 # ----------------------------------------------------------------------------------------------------------------

@@ -12,10 +12,10 @@ import torch
 
 def world_to_camera(camera_to_world: torch.Tensor) -> torch.Tensor:
     """[B, 3, 4] (or [B, 4, 4]) OpenGL camera-to-world poses -> [B, 4, 4] OpenCV world-to-camera matrices."""
-    R = camera_to_world[:, :3, :3] * torch.tensor([1.0, -1.0, -1.0], device=camera_to_world.device, dtype=camera_to_world.dtype)
-    T = camera_to_world[:, :3, 3:4]
+    flip = torch.tensor([1.0, -1.0, -1.0], device=camera_to_world.device, dtype=camera_to_world.dtype)
+    R_inv = (camera_to_world[:, :3, :3] * flip).transpose(1, 2)
     viewmat = torch.zeros(camera_to_world.shape[0], 4, 4, device=camera_to_world.device, dtype=camera_to_world.dtype)
-    viewmat[:, :3, :3] = R.transpose(1, 2)
-    viewmat[:, :3, 3:4] = -R.transpose(1, 2) @ T
+    viewmat[:, :3, :3] = R_inv
+    viewmat[:, :3, 3:4] = -R_inv @ camera_to_world[:, :3, 3:4]
     viewmat[:, 3, 3] = 1.0
     return viewmat
