@@ -206,6 +206,11 @@ def run_log_path(out: Path, scene: Path, protocol: str, name: str, seed: int) ->
     return out / "_runs" / f"{scene.name}-{protocol}-{name}-seed{seed}.log"
 
 
+def run_folder(run_root: Path, scene: Path, protocol: str, name: str, seed: int) -> Path:
+    """Where ns-train writes one run (its `--output-dir`/`--experiment-name`/method/`--timestamp`)."""
+    return run_root / scene.name / "hpgs" / f"{protocol}-{name}-seed{seed}"
+
+
 def train_args(bench: Bench, scene: Path, protocol: Protocol, name: str, seed: int, run_root: Path) -> List[str]:
     initial = bench.initial_views or protocol.initial_views
     selector, rounds = name, protocol.max_rounds
@@ -227,6 +232,8 @@ def train_args(bench: Bench, scene: Path, protocol: Protocol, name: str, seed: i
         "--pipeline.datamanager.selector", selector,
         "--pipeline.datamanager.seed", str(seed),
         "--pipeline.datamanager.eval-each-round", "True",
+        # ns-eval's JSON, written by the training process (hpgs_ns/trainer.py): no second start-up per run
+        "--final-eval-json", str(run_folder(run_root, scene, protocol.name, name, seed) / "eval.json"),
         "--pipeline.model.rasterizer", bench.rasterizer,
     ]
     if protocol.select_at:
@@ -243,10 +250,10 @@ def train_args(bench: Bench, scene: Path, protocol: Protocol, name: str, seed: i
 def run_one(
     bench: Bench, scene: Path, protocol: Protocol, name: str, seed: int, env: Optional[Dict[str, str]] = None
 ) -> dict:
-    """Train and evaluate one run in subprocesses with environment `env` (default: this process's)."""
+    """Train and evaluate one run in a subprocess with environment `env` (default: this process's)."""
     run_root = bench.out / "_runs"
     cmd = train_args(bench, scene, protocol, name, seed, run_root)
-    run_dir = run_root / scene.name / "hpgs" / f"{protocol.name}-{name}-seed{seed}"
+    run_dir = run_folder(run_root, scene, protocol.name, name, seed)
     # A run killed half-way left events and checkpoints there; timing and eval must see only this run's.
     shutil.rmtree(run_dir, ignore_errors=True)
     start = time.perf_counter()
@@ -260,7 +267,7 @@ def run_one(
     if os.waitstatus_to_exitcode(status) != 0:
         tail = "\n".join(log_path.read_text().strip().splitlines()[-15:])
         raise SystemExit(f"hpgs bench: training failed ({shlex.join(cmd)}):\n{tail}")
-    metrics = evaluate_run(run_dir, env)
+    metrics = json.loads((run_dir / "eval.json").read_text())
     selected = json.loads((run_dir / "selected_views.json").read_text())
     rounds = selected["rounds"]
     return {
@@ -325,16 +332,6 @@ def work_table(rows: List[dict]) -> str:
             f"{mean(group, 'backward_passes'):.0f} | {mean(group, 'model_forwards'):.0f} | {seconds:.1f} |"
         )
     return "\n".join(lines) + "\n"
-
-
-def evaluate_run(run_dir: Path, env: Optional[Dict[str, str]] = None) -> dict:
-    """Stock `ns-eval` on the run's final checkpoint: mean test-view PSNR/SSIM/LPIPS."""
-    out = run_dir / "eval.json"
-    subprocess.run(
-        [sys.executable, "-m", "nerfstudio.scripts.eval", "--load-config", str(run_dir / "config.yml"), "--output-path", str(out)],
-        check=True, capture_output=True, env=env,
-    )
-    return json.loads(out.read_text())
 
 
 def train_timing(run_dir: Path) -> dict:

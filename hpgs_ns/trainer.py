@@ -1,10 +1,15 @@
-"""Two small fixes to nerfstudio's trainer that `hpgs` runs need, and a schedule restart.
+"""Two small fixes to nerfstudio's trainer that `hpgs` runs need, an optional final evaluation, and a schedule
+restart.
 
 - A resumed run (`--load-dir`) ends at the configured total step count; stock nerfstudio runs another full
   `max_num_iterations` after the checkpoint's step.
 - Learning rates are saved as Python floats: splatfacto's exponential scheduler returns numpy float64, which
   ends up in the optimizer and scheduler state and makes `torch.load(weights_only=True)` (the default since
   torch 2.6) refuse the checkpoint in stock `ns-eval`, `ns-viewer` and resume.
+
+`--final-eval-json PATH` writes what stock `ns-eval --output-path PATH` would write for the final checkpoint
+(the same `get_average_eval_image_metrics(get_std=True)` call on the same weights), from the training process:
+it saves `ns-eval`'s ~15 s of start-up per run, which `hpgs bench` pays hundreds of times.
 
 `restart_schedules` makes every learning rate start over as if training began at the current step (the
 datamanager's `reset-after-add`).
@@ -14,7 +19,8 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Type
+from pathlib import Path
+from typing import Optional, Type
 
 from nerfstudio.engine.optimizers import Optimizers
 from nerfstudio.engine.schedulers import ExponentialDecayScheduler, ExponentialDecaySchedulerConfig
@@ -27,6 +33,8 @@ class HpgsTrainerConfig(TrainerConfig):
     """nerfstudio's TrainerConfig; resumed runs stop at `max_num_iterations` in total."""
 
     _target: Type = field(default_factory=lambda: HpgsTrainer)
+    final_eval_json: Optional[Path] = None
+    """If set, evaluate the test views once training ends and write `ns-eval`'s JSON here."""
 
 
 class HpgsTrainer(Trainer):
@@ -40,6 +48,26 @@ class HpgsTrainer(Trainer):
         if self._start_step > 0:
             self.config.max_num_iterations = max(total - self._start_step, 0)
             self.step = self._start_step - 1  # what `_after_train` saves if nothing is left to run
+
+    def _after_train(self) -> None:
+        # Before the parent's part: with the viewer on, it never returns.
+        if self.config.final_eval_json is not None:
+            write_final_eval(self, Path(self.config.final_eval_json))
+        super()._after_train()
+
+
+def write_final_eval(trainer: Trainer, path: Path) -> Path:
+    """`ns-eval`'s output for the trainer's current weights (what `_after_train` saves as the final checkpoint)."""
+    metrics = trainer.pipeline.get_average_eval_image_metrics(step=trainer.step, get_std=True)
+    payload = {
+        "experiment_name": trainer.config.experiment_name,
+        "method_name": trainer.config.method_name,
+        "checkpoint": str(trainer.checkpoint_dir / f"step-{trainer.step:09d}.ckpt"),
+        "results": metrics,
+    }
+    from hpgs_ns.datamanager import write_json_atomic  # lazy: the datamanager imports this module
+
+    return write_json_atomic(path, payload)
 
 
 @dataclass

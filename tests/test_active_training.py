@@ -25,6 +25,7 @@ from conftest import run_training, short_config
 def trained(tiny_scene, tmp_path_factory):
     out = tmp_path_factory.mktemp("runs")
     cfg = short_config(tiny_scene, out)
+    cfg.final_eval_json = out / "final_eval.json"
     sampled, losses = [], []
     from hpgs_ns.datamanager import ActiveDatamanager
 
@@ -139,8 +140,14 @@ def test_stock_ns_eval_and_ns_viewer_open_the_checkpoint(trained, tmp_path):
     env = {k: v for k, v in __import__("os").environ.items() if k != "TORCH_FORCE_NO_WEIGHTS_ONLY_LOAD"}
     subprocess.run([sys.executable, "-m", "nerfstudio.scripts.eval", "--load-config", str(config), "--output-path", str(out)],
                    check=True, env=env, capture_output=True)
-    results = json.loads(out.read_text())["results"]
+    stock = json.loads(out.read_text())
+    results = stock["results"]
     assert 5 < results["psnr"] < 60 and 0 <= results["lpips"] <= 1
+    # `--final-eval-json` (what `hpgs bench` reads) is ns-eval's output, computed in the training process.
+    final = json.loads(trained["cfg"].final_eval_json.read_text())
+    quality = ("psnr", "psnr_std", "ssim", "ssim_std", "lpips", "lpips_std")  # the rest are timings
+    assert [final["results"][k] for k in quality] == pytest.approx([results[k] for k in quality], rel=1e-6, abs=1e-7)
+    assert Path(final["checkpoint"]).name == Path(stock["checkpoint"]).name
 
     port = 7000 + (int(time.time()) % 900)
     viewer = subprocess.Popen(
