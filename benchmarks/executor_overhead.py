@@ -3,7 +3,7 @@
 Two measurements, written to OUT/executor_overhead.json:
 1. dispatch: N trivial items (the worker returns at once) through each executor's `map`; seconds per item once
    the executor is up, and the one-off start-up (a local Ray cluster, or nothing).
-2. runs: the same tiny CPU bench runs (15 steps on the 64x48 ring scene, ns-train + ns-eval) one at a time with
+2. runs: the same tiny CPU bench runs (15 steps on the 64x48 ring scene; ns-train evaluates in-process) one at a time with
    `local` and with Ray on a 1-CPU local cluster; the per-run difference of the driver's wall time.
 
     OMP_NUM_THREADS=1 python benchmarks/executor_overhead.py [--out benchmarks/results] [--items 20] [--runs 2]
@@ -85,7 +85,7 @@ def main() -> None:
     local, on_ray = report["runs"]["local"], report["runs"]["ray"]
     assert local["psnr"] == on_ray["psnr"], "Ray changed the numbers"
     report["ray_overhead_seconds_per_run"] = on_ray["seconds_per_run"] - local["seconds_per_run"]
-    report["note"] = ("runs: driver wall per run including ns-train and ns-eval; on a shared machine the runs' own "
+    report["note"] = ("runs: driver wall per run (ns-train incl. its final evaluation); on a shared machine the runs' own "
                       "variation can exceed the executor's cost, compare with dispatch_seconds_per_item")
     print(json.dumps(report, indent=2))
     args.out.mkdir(parents=True, exist_ok=True)
