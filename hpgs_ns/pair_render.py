@@ -17,13 +17,14 @@ is why this is written here.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Dict, Sequence
+from typing import Dict, Sequence, Tuple
 
 import torch
 from torch import Tensor
 
-from hpgs_ns.cpu_raster import _project, _quat_scale_to_covar, _sh_to_color
+from hpgs_ns.cpu_raster import _project, _quat_scale_to_covar, _sh_bases, _sh_to_color
 
+SH_PARAMS = ("features_dc", "features_rest")
 NEAR_PLANE = 0.01  # splatfacto's near plane
 EPS2D = 0.3  # gsplat's default low-pass (splatfacto keeps it)
 TILE_SIZE = 16
@@ -42,6 +43,11 @@ class PairRender:
     """[nnz] which view of the batch each pair belongs to."""
     gaussian_ids: Tensor
     """[nnz] which Gaussian of the model each pair copies."""
+    color_offset: Tensor | None = None
+    """[nnz, 3] zeros added to each pair's SH colour (before the +0.5 and clamp), requiring grad: its gradient is
+    the colour gradient d that gives the SH coefficients' gradients as B_k * d (`render_pairs(sh_via_color=True)`)."""
+    sh_bases: Tensor | None = None
+    """[nnz, (degree+1)^2] the SH bases B_k at each pair's viewing direction (detached), with `color_offset`."""
 
 
 def active_sh_degree(model) -> int | None:
@@ -76,14 +82,26 @@ def visible_pairs(means: Tensor, covars: Tensor, viewmats: Tensor, Ks: Tensor, w
     return torch.cat(cids), torch.cat(gids), torch.cat(radii)
 
 
-def render_pairs(model, viewmats: Tensor, Ks: Tensor, width: int, height: int, grad_params: Sequence[str], backend: str) -> PairRender:
+def render_pairs(
+    model, viewmats: Tensor, Ks: Tensor, width: int, height: int, grad_params: Sequence[str], backend: str,
+    sh_via_color: bool = False,
+) -> PairRender:
     """Eval-mode RGB of C views of one size ([C, 4, 4] world-to-camera, [C, 3, 3] intrinsics), differentiable
-    w.r.t. each pair's copy of `grad_params` (names of `model.gauss_params`). `backend`: "gsplat" or "cpu"."""
+    w.r.t. each pair's copy of `grad_params` (names of `model.gauss_params`). `backend`: "gsplat" or "cpu".
+
+    `sh_via_color`: the SH coefficients (`features_dc`, `features_rest`) get no gradient of their own; the
+    render carries `color_offset` and `sh_bases` instead, from which `sh_squared_gradients` gives theirs. The
+    colour is linear in the coefficients, so this is exact, and a backward pass then writes 3 numbers per pair
+    for them instead of 3 (degree + 1)^2."""
     params = {n: t.detach() for n, t in model.gauss_params.items()}
     C = viewmats.shape[0]
     with torch.no_grad():
         covars = _quat_scale_to_covar(params["quats"], torch.exp(params["scales"]))
     cids, gids, radii = visible_pairs(params["means"], covars, viewmats, Ks, width, height)
+    degree = active_sh_degree(model)
+    via_color = sh_via_color and degree is not None
+    if via_color:
+        grad_params = [n for n in grad_params if n not in SH_PARAMS]
     leaves = {n: t[gids].requires_grad_(n in grad_params) for n, t in params.items()}
 
     cov = _quat_scale_to_covar(leaves["quats"], torch.exp(leaves["scales"]))
@@ -91,17 +109,37 @@ def render_pairs(model, viewmats: Tensor, Ks: Tensor, width: int, height: int, g
     opacities = torch.sigmoid(leaves["opacities"]).reshape(-1)
     if model.config.rasterize_mode == "antialiased":
         opacities = opacities * proj["compensations"]
-    degree = active_sh_degree(model)
+    offset = bases = None
     if degree is None:
         colors = torch.sigmoid(leaves["features_dc"])
     else:
         campos = torch.inverse(viewmats)[:, :3, 3]
+        dirs = leaves["means"] - campos[cids]
         coeffs = torch.cat((leaves["features_dc"][:, None, :], leaves["features_rest"]), dim=1)
-        colors = torch.clamp_min(_sh_to_color(degree, leaves["means"] - campos[cids], coeffs) + 0.5, 0.0)
+        colors = _sh_to_color(degree, dirs, coeffs) + 0.5
+        if via_color:
+            offset = torch.zeros_like(colors, requires_grad=True)
+            colors = colors + offset
+            with torch.no_grad():
+                bases = _sh_bases(degree, dirs)
+        colors = torch.clamp_min(colors, 0.0)
     backgrounds = model.background_color.to(viewmats).expand(C, 3).contiguous()
     rasterize = _rasterize_gsplat if backend == "gsplat" else _rasterize_cpu
     image, _ = rasterize(proj["means2d"], proj["conics"], colors, opacities, radii, proj["depths"], cids, gids, C, width, height, backgrounds)
-    return PairRender(image=image, leaves=leaves, camera_ids=cids, gaussian_ids=gids)
+    return PairRender(image=image, leaves=leaves, camera_ids=cids, gaussian_ids=gids, color_offset=offset, sh_bases=bases)
+
+
+def sh_squared_gradients(sh_bases: Tensor, color_grad_sq: Tensor, n_rest: int) -> Tuple[Tensor, Tensor]:
+    """Squared gradients of each pair's SH coefficients from its squared colour gradient: colour = sum_k B_k c_k,
+    so dL/dc_k = B_k * d and (dL/dc_k)^2 = B_k^2 * d^2 (also for a probe-mean of d^2, B being fixed).
+    sh_bases [nnz, K], color_grad_sq [nnz, 3] -> (features_dc [nnz, 3], features_rest [nnz, n_rest, 3]); the
+    coefficients above the active degree get zero."""
+    b2 = sh_bases.square()
+    dc = b2[:, :1] * color_grad_sq
+    rest = color_grad_sq.new_zeros(color_grad_sq.shape[0], n_rest, 3)
+    used = min(b2.shape[1] - 1, n_rest)
+    rest[:, :used] = b2[:, 1 : 1 + used, None] * color_grad_sq[:, None, :]
+    return dc, rest
 
 
 def _rasterize_cpu(means2d, conics, colors, opacities, radii, depths, cids, gids, C, width, height, backgrounds):

@@ -10,7 +10,8 @@ import pytest
 import torch
 
 from hpgs_ns.cpu_raster import rasterization
-from hpgs_ns.pair_render import render_pairs
+from hpgs_ns.pair_render import render_pairs, sh_squared_gradients
+from hpgs_ns.selectors.fisher import FisherSelectorConfig
 
 torch.set_num_threads(1)
 
@@ -95,6 +96,38 @@ def test_one_backward_gives_each_views_own_gradient():
         for name, g, r in zip(names, grads, ref):
             per_gauss = torch.zeros_like(r).index_add_(0, pr.gaussian_ids[mine], g[mine])
             assert torch.allclose(per_gauss, r, rtol=1e-7, atol=1e-10), (c, name, (per_gauss - r).abs().max())
+
+
+@pytest.mark.parametrize("interval, degree", [(10, 1), (1, 3)])
+def test_sh_squared_gradients_from_the_colour_gradient_equal_autograds(interval, degree):
+    """`sh_via_color`: B_k^2 * d^2 is each SH coefficient's squared gradient (zero above the active degree)."""
+    model = random_splat(sh_degree=3)
+    model.config.sh_degree_interval = interval  # step 10: active degree 10 // interval, at most 3
+    viewmats, Ks, W, H = ring_cameras()
+    names = ("means", "features_dc", "features_rest", "scales", "opacities")
+    full = render_pairs(model, viewmats, Ks, W, H, names, backend="cpu")
+    fast = render_pairs(model, viewmats, Ks, W, H, names, backend="cpu", sh_via_color=True)
+    assert torch.equal(full.image, fast.image) and fast.sh_bases.shape[1] == (degree + 1) ** 2
+    assert not fast.leaves["features_rest"].requires_grad
+    eps = torch.randint(0, 2, full.image.shape, generator=torch.Generator().manual_seed(3)).double() * 2 - 1
+    g_full = torch.autograd.grad(full.image, [full.leaves[n] for n in names], grad_outputs=eps, retain_graph=True)
+    g_full = dict(zip(names, g_full))
+    direct = ("means", "scales", "opacities")
+    fast_inputs = [fast.leaves[n] for n in direct] + [fast.color_offset]
+    g_fast = torch.autograd.grad(fast.image, fast_inputs, grad_outputs=eps, retain_graph=True)
+    dc, rest = sh_squared_gradients(fast.sh_bases, g_fast[-1].square(), 15)
+    assert torch.allclose(dc, g_full["features_dc"].square(), rtol=1e-10, atol=1e-15)
+    assert torch.allclose(rest, g_full["features_rest"].square(), rtol=1e-10, atol=1e-15)
+    assert rest[:, (degree + 1) ** 2 - 1 :].abs().sum() == 0 and rest[:, : (degree + 1) ** 2 - 1].abs().max() > 0
+    for name, g in zip(direct, g_fast):  # the means still get their path through the viewing direction
+        assert torch.allclose(g, g_full[name], rtol=1e-10, atol=1e-15), name
+
+    # The Fisher selector's per-pair diagonal is the same either way (same probes).
+    selector = FisherSelectorConfig(probes=4).setup()
+    both = [selector.pair_squares(pr, 4, torch.Generator().manual_seed(4)) for pr in (full, fast)]
+    assert both[0].keys() == both[1].keys() == set(names)
+    for name in names:
+        assert torch.allclose(both[0][name], both[1][name], rtol=1e-10, atol=1e-15), name
 
 
 @pytest.mark.cuda

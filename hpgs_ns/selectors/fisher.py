@@ -19,7 +19,9 @@ tensor). `exact` mode back-propagates every pixel-channel (only for tiny images:
 Views are processed `view_batch` at a time through `hpgs_ns.pair_render`: each (view, Gaussian) pair has its own
 copy of the parameters, so one backward pass per probe gives every view of the batch its own gradient, and only
 the Gaussians whose footprint reaches a view are gathered for it (frustum culling). H_train is recomputed every
-round because densification renumbers the Gaussians.
+round because densification renumbers the Gaussians. The colour is linear in the SH coefficients, so their
+squared gradients come from each pair's colour gradient d as B_k^2 d^2 (`sh_via_color`) rather than from 48
+back-propagated numbers per pair and probe.
 """
 
 from __future__ import annotations
@@ -32,7 +34,7 @@ import torch
 from nerfstudio.configs.base_config import InstantiateConfig
 
 from hpgs_ns.model import resolve_rasterizer
-from hpgs_ns.pair_render import PairRender, render_pairs
+from hpgs_ns.pair_render import SH_PARAMS, PairRender, render_pairs, sh_squared_gradients
 from hpgs_ns.selectors.base import Selection, SelectionContext, SelectionError, eval_mode
 from hpgs_ns.viewmats import world_to_camera
 
@@ -60,6 +62,9 @@ class FisherSelectorConfig(InstantiateConfig):
     view_batch: int = 32
     """Views rendered and differentiated together (each with its own copy of its visible Gaussians, so memory
     grows with it; lower it if GPU memory runs out)."""
+    sh_via_color: bool = True
+    """Get the SH coefficients' squared gradients from each pair's colour gradient (exact: the colour is linear
+    in them) instead of back-propagating into all 3 (degree + 1)^2 of them per probe."""
     resolution_scale: float = 0.5
     """Render views at this fraction of the dataset resolution (FisherRF's information is dominated by coarse
     structure; halving the side quarters the cost)."""
@@ -118,7 +123,10 @@ class FisherSelector:
     def render(self, context: SelectionContext, batch: ViewBatch) -> PairRender:
         backend = resolve_rasterizer(getattr(context.model.config, "rasterizer", "auto"))
         with torch.enable_grad():
-            pr = render_pairs(context.model, batch.viewmats, batch.Ks, batch.width, batch.height, self.param_names(), backend)
+            pr = render_pairs(
+                context.model, batch.viewmats, batch.Ks, batch.width, batch.height, self.param_names(), backend,
+                sh_via_color=self.config.sh_via_color,
+            )
         full = context.cameras[torch.tensor(batch.views, dtype=torch.long)]
         self._count("views_rendered", len(batch.views))
         self._count("pixels_rendered", len(batch.views) * batch.width * batch.height)
@@ -130,31 +138,46 @@ class FisherSelector:
     def _count(self, key: str, n: float) -> None:
         self.work[key] = self.work.get(key, 0) + n
 
-    def pair_gradients(self, pr: PairRender, probes: int, generator: torch.Generator) -> Iterator[Tuple[Dict[str, torch.Tensor], float]]:
-        """(gradient of every pair, weight) for each probe (or each pixel-channel in `exact` mode): the weighted
-        sum of the squared gradients over the yields is each view's diag(J^T J), pair by pair."""
+    def pair_squares(self, pr: PairRender, probes: int, generator: torch.Generator) -> Dict[str, torch.Tensor]:
+        """Each pair's diag(J^T J) for every Fisher parameter, [nnz, ...] like its leaf: the probe mean of the
+        squared pair gradients (in `exact` mode the sum over pixel-channels)."""
         names = self.param_names()
-        leaves = [pr.leaves[n] for n in names]
+        via_color = pr.color_offset is not None  # SH coefficients through the colour gradient (pair_render)
+        direct = [n for n in names if not (via_color and n in SH_PARAMS)]
+        inputs = [pr.leaves[n] for n in direct] + ([pr.color_offset] if via_color else [])
+        sums = [torch.zeros_like(t, requires_grad=False) for t in inputs]
+        for grads, weight in self.pair_gradients(pr, inputs, probes, generator):
+            for total, g in zip(sums, grads):
+                if g is not None:
+                    total.add_(g.detach().square(), alpha=weight)
+        squares = dict(zip(direct, sums))
+        if via_color:
+            squares["features_dc"], squares["features_rest"] = sh_squared_gradients(
+                pr.sh_bases, sums[-1], pr.leaves["features_rest"].shape[1]
+            )
+        return squares
+
+    def pair_gradients(
+        self, pr: PairRender, inputs: List[torch.Tensor], probes: int, generator: torch.Generator
+    ) -> Iterator[Tuple[Tuple[torch.Tensor, ...], float]]:
+        """(gradient of every pair w.r.t. `inputs`, weight) for each probe (or each pixel-channel in `exact`
+        mode): the weighted sum of the squared gradients over the yields is each view's diag(J^T J), pair by pair."""
         if pr.camera_ids.numel() == 0:
             return
         if self.config.mode == "exact":
             flat = pr.image.reshape(pr.image.shape[0], -1)
             for k in range(flat.shape[1]):
                 # Pixel k of every view at once: the pairs keep the views' gradients apart.
-                grads = torch.autograd.grad(flat[:, k].sum(), leaves, retain_graph=k < flat.shape[1] - 1, allow_unused=True)
+                grads = torch.autograd.grad(flat[:, k].sum(), inputs, retain_graph=k < flat.shape[1] - 1, allow_unused=True)
                 self._count("backward_passes", 1)
-                yield self._named(names, grads, leaves), 1.0
+                yield grads, 1.0
             return
         for k in range(probes):
             eps = torch.randint(0, 2, pr.image.shape, generator=generator, device=pr.image.device, dtype=torch.int8)
             eps = eps.to(pr.image.dtype).mul_(2).sub_(1)
-            grads = torch.autograd.grad(pr.image, leaves, grad_outputs=eps, retain_graph=k < probes - 1, allow_unused=True)
+            grads = torch.autograd.grad(pr.image, inputs, grad_outputs=eps, retain_graph=k < probes - 1, allow_unused=True)
             self._count("backward_passes", 1)
-            yield self._named(names, grads, leaves), 1.0 / probes
-
-    @staticmethod
-    def _named(names, grads, leaves) -> Dict[str, torch.Tensor]:
-        return {n: (g if g is not None else torch.zeros_like(t)) for n, g, t in zip(names, grads, leaves)}
+            yield grads, 1.0 / probes
 
     # ---- the two quantities ----------------------------------------------------------------------------------
 
@@ -164,9 +187,8 @@ class FisherSelector:
         total = {n: torch.zeros_like(model.gauss_params[n]).detach() for n in self.param_names()}
         for batch in self.batches(context, views):
             pr = self.render(context, batch)
-            for grads, weight in self.pair_gradients(pr, probes, generator):
-                for n, g in grads.items():
-                    total[n].index_add_(0, pr.gaussian_ids, g.detach().square() * weight)
+            for n, sq in self.pair_squares(pr, probes, generator).items():
+                total[n].index_add_(0, pr.gaussian_ids, sq)
         return total
 
     def view_scores(self, context: SelectionContext, views: Sequence[int], weights: Dict[str, torch.Tensor], generator: torch.Generator) -> Dict[int, float]:
@@ -175,11 +197,9 @@ class FisherSelector:
         for batch in self.batches(context, views):
             pr = self.render(context, batch)
             gids = pr.gaussian_ids
-            w = {n: weights[n][gids] for n in weights}
             per_pair = torch.zeros(gids.shape[0], dtype=pr.image.dtype, device=pr.image.device)
-            for grads, weight in self.pair_gradients(pr, self.config.probes, generator):
-                for n, g in grads.items():
-                    per_pair += (g.detach().square() * w[n]).flatten(1).sum(1) * weight
+            for n, sq in self.pair_squares(pr, self.config.probes, generator).items():
+                per_pair += (sq * weights[n][gids]).flatten(1).sum(1)
             per_view = torch.zeros(len(batch.views), dtype=torch.float64, device=per_pair.device)
             per_view.index_add_(0, pr.camera_ids, per_pair.double())
             scores.update({v: float(s) for v, s in zip(batch.views, per_view.tolist())})
