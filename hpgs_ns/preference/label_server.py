@@ -31,7 +31,7 @@ import tyro
 from typing_extensions import Annotated
 
 from hpgs_ns.preference.model import CheckpointError
-from hpgs_ns.preference.pairs import COLUMNS, SKIPPED, PairsError, parse_flag, write_rows_atomic
+from hpgs_ns.preference.pairs import COLUMNS, SKIPPED, PairsError, pairs_reader, parse_flag, write_rows_atomic
 
 PAGE = Path(__file__).resolve().parent / "static" / "label.html"
 LABEL, IMAGE_1, IMAGE_2 = COLUMNS[2], COLUMNS[0], COLUMNS[1]
@@ -46,13 +46,8 @@ class LabelBook:
             raise PairsError(f"{self.path}: pairs CSV not found; create it with `hpgs collect` "
                              f"(columns {','.join(COLUMNS)})")
         with open(self.path, newline="", encoding="utf-8-sig") as f:
-            reader = csv.DictReader(f)
-            header = [h.strip() for h in (reader.fieldnames or [])]
-            missing = [c for c in COLUMNS if c not in header]
-            if missing:
-                raise PairsError(f"{self.path}: missing column(s) {', '.join(missing)}; the header must be "
-                                 f"{','.join(COLUMNS)}[,{SKIPPED}]")
-            reader.fieldnames = header
+            reader = pairs_reader(f, self.path)
+            header = list(reader.fieldnames)
             self.rows: List[Dict[str, str]] = [dict(r) for r in reader]
         self.fields = header + ([SKIPPED] if SKIPPED not in header else [])
         for line, row in enumerate(self.rows, start=2):

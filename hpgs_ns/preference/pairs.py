@@ -62,19 +62,26 @@ def _image_path(csv_path: Path, name: str) -> Path:
     return Path(os.path.normpath(os.path.abspath(csv_path.parent / name)))
 
 
+def pairs_reader(f, csv_path: Path) -> csv.DictReader:
+    """A DictReader over an open pairs CSV with its header stripped and checked (PairsError if a column is
+    missing)."""
+    reader = csv.DictReader(f)
+    header = [h.strip() for h in (reader.fieldnames or [])]
+    missing = [c for c in COLUMNS if c not in header]
+    if missing:
+        raise PairsError(f"{csv_path}: missing column(s) {', '.join(missing)}; the header must be "
+                         f"{','.join(COLUMNS)}[,{SKIPPED}]")
+    reader.fieldnames = header
+    return reader
+
+
 def read_pairs(csv_path: Path) -> List[Pair]:
     """Every row of a pairs CSV (labelled or not); PairsError on a malformed file."""
     csv_path = Path(csv_path)
     if not csv_path.is_file():
         raise PairsError(f"{csv_path}: pairs CSV not found; pass an existing file (columns {','.join(COLUMNS)})")
     with open(csv_path, newline="", encoding="utf-8-sig") as f:
-        reader = csv.DictReader(f)
-        header = [h.strip() for h in (reader.fieldnames or [])]
-        missing = [c for c in COLUMNS if c not in header]
-        if missing:
-            raise PairsError(f"{csv_path}: missing column(s) {', '.join(missing)}; the header must be "
-                             f"{','.join(COLUMNS)}[,{SKIPPED}]")
-        reader.fieldnames = header
+        reader = pairs_reader(f, csv_path)
         pairs = []
         for line, row in enumerate(reader, start=2):
             if None in row:  # more cells than header fields
