@@ -46,6 +46,9 @@ def main() -> None:
 
     _, pipeline, _, step = eval_setup(args.run / "config.yml", test_mode="test")
     dm, model = pipeline.datamanager, pipeline.model
+    # splatfacto's load_state_dict sets step 30000 (full SH degree); a round at this step renders with the SH
+    # degree of the step instead (up to 2026-11 this script scored degree 3 where the run's round used 1).
+    model.step = step
 
     view_batches = args.view_batch or [FisherSelectorConfig().view_batch]
 
