@@ -48,6 +48,8 @@ class PairRender:
     the colour gradient d that gives the SH coefficients' gradients as B_k * d (`render_pairs(sh_via_color=True)`)."""
     sh_bases: Tensor | None = None
     """[nnz, (degree+1)^2] the SH bases B_k at each pair's viewing direction (detached), with `color_offset`."""
+    pairs_in_frustum: int = 0
+    """Pairs whose footprint reaches a view, before `drop_hidden` left out those composited nowhere."""
 
 
 def active_sh_degree(model) -> int | None:
@@ -84,7 +86,7 @@ def visible_pairs(means: Tensor, covars: Tensor, viewmats: Tensor, Ks: Tensor, w
 
 def render_pairs(
     model, viewmats: Tensor, Ks: Tensor, width: int, height: int, grad_params: Sequence[str], backend: str,
-    sh_via_color: bool = False,
+    sh_via_color: bool = False, drop_hidden: bool = False,
 ) -> PairRender:
     """Eval-mode RGB of C views of one size ([C, 4, 4] world-to-camera, [C, 3, 3] intrinsics), differentiable
     w.r.t. each pair's copy of `grad_params` (names of `model.gauss_params`). `backend`: "gsplat" or "cpu".
@@ -92,12 +94,22 @@ def render_pairs(
     `sh_via_color`: the SH coefficients (`features_dc`, `features_rest`) get no gradient of their own; the
     render carries `color_offset` and `sh_bases` instead, from which `sh_squared_gradients` gives theirs. The
     colour is linear in the coefficients, so this is exact, and a backward pass then writes 3 numbers per pair
-    for them instead of 3 (degree + 1)^2."""
+    for them instead of 3 (degree + 1)^2.
+
+    `drop_hidden`: leave out the pairs the rasterizer composites into no pixel (behind opaque surfaces, or alpha
+    below 1/255 everywhere). They change no pixel and get exactly zero gradient, so the image and every kept
+    pair's gradient are the same; finding them costs one forward and backward without parameter gradients."""
     params = {n: t.detach() for n, t in model.gauss_params.items()}
     C = viewmats.shape[0]
     with torch.no_grad():
         covars = _quat_scale_to_covar(params["quats"], torch.exp(params["scales"]))
     cids, gids, radii = visible_pairs(params["means"], covars, viewmats, Ks, width, height)
+    in_frustum = int(cids.numel())
+    rasterize = _rasterize_gsplat if backend == "gsplat" else _rasterize_cpu
+    backgrounds = model.background_color.to(viewmats).expand(C, 3).contiguous()
+    if drop_hidden and in_frustum:
+        keep = composited(model, params, cids, gids, radii, viewmats, Ks, width, height, rasterize, backgrounds)
+        cids, gids, radii = cids[keep], gids[keep], radii[keep]
     degree = active_sh_degree(model)
     via_color = sh_via_color and degree is not None
     if via_color:
@@ -123,10 +135,29 @@ def render_pairs(
             with torch.no_grad():
                 bases = _sh_bases(degree, dirs)
         colors = torch.clamp_min(colors, 0.0)
-    backgrounds = model.background_color.to(viewmats).expand(C, 3).contiguous()
-    rasterize = _rasterize_gsplat if backend == "gsplat" else _rasterize_cpu
     image, _ = rasterize(proj["means2d"], proj["conics"], colors, opacities, radii, proj["depths"], cids, gids, C, width, height, backgrounds)
-    return PairRender(image=image, leaves=leaves, camera_ids=cids, gaussian_ids=gids, color_offset=offset, sh_bases=bases)
+    return PairRender(
+        image=image, leaves=leaves, camera_ids=cids, gaussian_ids=gids, color_offset=offset, sh_bases=bases,
+        pairs_in_frustum=in_frustum,
+    )
+
+
+def composited(model, params, cids, gids, radii, viewmats, Ks, width, height, rasterize, backgrounds) -> Tensor:
+    """[nnz] bool: whether each pair is composited into at least one pixel. With zero colours that require grad
+    and an all-ones upstream gradient, a pair's colour gradient is sum over pixels of alpha * T: > 0 exactly
+    when it is composited somewhere (no cancellation: every term is >= 0)."""
+    with torch.no_grad():
+        cov = _quat_scale_to_covar(params["quats"][gids], torch.exp(params["scales"][gids]))
+        proj = _project(params["means"][gids], cov, viewmats[cids], Ks[cids], width, height, EPS2D, False)
+        opacities = torch.sigmoid(params["opacities"][gids]).reshape(-1)
+        if model.config.rasterize_mode == "antialiased":
+            opacities = opacities * proj["compensations"]
+    probe = torch.zeros(gids.shape[0], 3, dtype=opacities.dtype, device=opacities.device, requires_grad=True)
+    with torch.enable_grad():
+        image, _ = rasterize(proj["means2d"], proj["conics"], probe, opacities, radii, proj["depths"], cids, gids,
+                             viewmats.shape[0], width, height, backgrounds)
+        (weight,) = torch.autograd.grad(image.sum(), probe)
+    return weight[:, 0] > 0
 
 
 def sh_squared_gradients(sh_bases: Tensor, color_grad_sq: Tensor, n_rest: int) -> Tuple[Tensor, Tensor]:

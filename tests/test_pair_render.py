@@ -130,6 +130,32 @@ def test_sh_squared_gradients_from_the_colour_gradient_equal_autograds(interval,
         assert torch.allclose(both[0][name], both[1][name], rtol=1e-10, atol=1e-15), name
 
 
+def test_drop_hidden_leaves_out_only_pairs_with_no_pixel():
+    """Opaque Gaussians hide others: those pairs go, the image and every kept pair's gradient stay the same, and
+    the dropped ones had exactly zero gradient."""
+    model = random_splat(n=400)
+    model.gauss_params["opacities"] = model.gauss_params["opacities"].abs() + 3.0  # sigmoid > 0.95: occlusion
+    model.gauss_params["scales"] = model.gauss_params["scales"] + math.log(4.0)  # several pixels wide: overlap
+    viewmats, Ks, W, H = ring_cameras()
+    names = ("means", "features_dc", "features_rest", "scales", "opacities")
+    full = render_pairs(model, viewmats, Ks, W, H, names, backend="cpu")
+    kept = render_pairs(model, viewmats, Ks, W, H, names, backend="cpu", drop_hidden=True)
+    assert kept.pairs_in_frustum == full.camera_ids.numel() > 1.2 * kept.camera_ids.numel() > 0  # ~30% hidden
+    assert torch.allclose(kept.image, full.image, rtol=0, atol=1e-12)
+    eps = torch.randint(0, 2, full.image.shape, generator=torch.Generator().manual_seed(5)).double() * 2 - 1
+    g_full = torch.autograd.grad(full.image, [full.leaves[n] for n in names], grad_outputs=eps)
+    g_kept = torch.autograd.grad(kept.image, [kept.leaves[n] for n in names], grad_outputs=eps)
+    n_gauss = model.gauss_params["means"].shape[0]
+    key = lambda pr: pr.camera_ids * n_gauss + pr.gaussian_ids  # noqa: E731
+    where = {int(k): i for i, k in enumerate(key(full))}
+    rows = torch.tensor([where[int(k)] for k in key(kept)])
+    dropped = torch.ones(full.camera_ids.numel(), dtype=torch.bool)
+    dropped[rows] = False
+    for name, gf, gk in zip(names, g_full, g_kept):
+        assert torch.allclose(gk, gf[rows], rtol=1e-9, atol=1e-14), name
+        assert gf[dropped].abs().max() == 0, name
+
+
 @pytest.mark.cuda
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device (gsplat's packed kernels)")
 def test_gsplat_backend_matches_the_cpu_twin():
@@ -149,3 +175,31 @@ def test_gsplat_backend_matches_the_cpu_twin():
     assert (out["gsplat"][0] - out["cpu"][0]).abs().max() < 1e-4
     for g, c in zip(out["gsplat"][1], out["cpu"][1]):
         assert (g - c).abs().max() <= 1e-3 * c.abs().max() + 1e-6
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device (gsplat's packed kernels)")
+def test_fisher_shortcuts_on_gsplat_keep_the_pair_diagonal():
+    """`sh_via_color` and `drop_hidden` (the fisher defaults) on gsplat's kernels: same per-Gaussian diagonal."""
+    model = random_splat(n=3000, sh_degree=3)
+    model.gauss_params["scales"] = model.gauss_params["scales"] + math.log(4.0)
+    model.gauss_params["opacities"] = model.gauss_params["opacities"].abs() + 2.0
+    for key, t in model.gauss_params.items():
+        model.gauss_params[key] = t.float().cuda()
+    model.background_color = model.background_color.float().cuda()
+    viewmats, Ks, W, H = ring_cameras(4, 32, 24)
+    viewmats, Ks = viewmats.float().cuda(), Ks.float().cuda()
+    names = ("means", "features_dc", "features_rest", "scales", "opacities")
+    selector = FisherSelectorConfig(mode="exact").setup()  # every pixel-channel: no probe noise between the two
+    diag = []
+    for fast in (False, True):
+        pr = render_pairs(model, viewmats, Ks, W, H, names, backend="gsplat", sh_via_color=fast, drop_hidden=fast)
+        total = {n: torch.zeros_like(model.gauss_params[n]) for n in names}
+        for n, sq in selector.pair_squares(pr, 1, torch.Generator(device="cuda")).items():
+            total[n].index_add_(0, pr.gaussian_ids, sq)
+        diag.append((pr, total))
+    (full, d_full), (kept, d_kept) = diag
+    assert kept.camera_ids.numel() < full.camera_ids.numel()
+    assert (kept.image - full.image).abs().max() < 1e-5
+    for n in names:
+        assert (d_kept[n] - d_full[n]).abs().max() <= 1e-3 * d_full[n].abs().max() + 1e-8, n

@@ -65,6 +65,9 @@ class FisherSelectorConfig(InstantiateConfig):
     sh_via_color: bool = True
     """Get the SH coefficients' squared gradients from each pair's colour gradient (exact: the colour is linear
     in them) instead of back-propagating into all 3 (degree + 1)^2 of them per probe."""
+    drop_hidden: bool = True
+    """Leave out (view, Gaussian) pairs composited into no pixel (occluded, or too faint everywhere): exactly
+    zero gradient, so the same scores for one extra forward and backward per batch of views."""
     resolution_scale: float = 0.5
     """Render views at this fraction of the dataset resolution (FisherRF's information is dominated by coarse
     structure; halving the side quarters the cost)."""
@@ -125,12 +128,13 @@ class FisherSelector:
         with torch.enable_grad():
             pr = render_pairs(
                 context.model, batch.viewmats, batch.Ks, batch.width, batch.height, self.param_names(), backend,
-                sh_via_color=self.config.sh_via_color,
+                sh_via_color=self.config.sh_via_color, drop_hidden=self.config.drop_hidden,
             )
         full = context.cameras[torch.tensor(batch.views, dtype=torch.long)]
         self._count("views_rendered", len(batch.views))
         self._count("pixels_rendered", len(batch.views) * batch.width * batch.height)
         self._count("pixels_full_resolution", int((full.width * full.height).sum()))
+        self._count("pairs_in_frustum", pr.pairs_in_frustum)
         self._count("pairs_differentiated", pr.camera_ids.numel())
         self._count("pairs_unculled", len(batch.views) * context.model.num_points)
         return pr
