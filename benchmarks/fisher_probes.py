@@ -10,7 +10,6 @@ correlation, whether the top pick agrees, and seconds per round. Prints a table 
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import time
 from pathlib import Path
@@ -41,7 +40,7 @@ def main() -> None:
 
     from nerfstudio.utils.eval_utils import eval_setup
 
-    from hpgs_ns.datamanager import write_json_atomic
+    from hpgs_ns.atomic_write import write_json_atomic
     from hpgs_ns.selectors.fisher import FisherSelectorConfig
 
     _, pipeline, _, step = eval_setup(args.run / "config.yml", test_mode="test")

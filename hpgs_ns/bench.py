@@ -25,10 +25,10 @@ from typing import Dict, List, Literal, Optional, Sequence, Tuple
 
 import tyro
 from rich.console import Console
-from rich.table import Table
 
 from hpgs_ns.executors import ExecutorConfig, run_sweep
-from hpgs_ns.stress import PerturbationName, StressConfig, StressError, stress_plot, stress_table, stressed_scenes, write_text_atomic
+from hpgs_ns.atomic_write import write_text_atomic
+from hpgs_ns.stress import PerturbationName, StressConfig, StressError, stress_plot, stress_table, stressed_scenes
 
 CONSOLE = Console(stderr=True)
 SELECTORS = ("random", "farthest", "fisher", "hpgs", "condorcet")

@@ -9,13 +9,11 @@ format (`Image_1,Image_2,Human Preference`), ready for `hpgs label`.
 from __future__ import annotations
 
 import csv
-import os
 import random
 import shlex
 import shutil
 import subprocess
 import sys
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import List, Literal, Optional
@@ -26,6 +24,8 @@ import yaml
 from PIL import Image
 from rich.console import Console
 from rich.progress import track
+
+from hpgs_ns.atomic_write import atomic_path
 
 CONSOLE = Console(stderr=True)
 
@@ -153,14 +153,7 @@ def draw_pairs(images: List[str], n: int, seed: int) -> List[dict]:
 
 def write_csv_atomic(path: Path, columns: List[str], rows: List[dict]) -> None:
     """Write a CSV via a temp file and a rename."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=columns)
-            writer.writeheader()
-            writer.writerows(rows)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_path(path) as tmp, open(tmp, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=columns)
+        writer.writeheader()
+        writer.writerows(rows)

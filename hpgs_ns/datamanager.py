@@ -16,8 +16,6 @@ state and the learning-rate schedules restart (`HpgsSplatfactoModel.reset_to_ini
 
 from __future__ import annotations
 
-import json
-import os
 import tempfile
 import time
 from dataclasses import dataclass, field
@@ -31,6 +29,7 @@ from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttrib
 from nerfstudio.utils import writer
 from nerfstudio.utils.rich_utils import CONSOLE
 
+from hpgs_ns.atomic_write import write_json_atomic
 from hpgs_ns.dataparser import MipNerf360DataParserConfig
 from hpgs_ns.selectors import (
     CondorcetSelectorConfig,
@@ -448,17 +447,3 @@ def farthest_point_order(points: torch.Tensor, k: int, start: int = 0, chosen: S
         out.append(nxt)
         dist = torch.minimum(dist, torch.linalg.norm(points - points[nxt], dim=1))
     return out
-
-
-def write_json_atomic(path: Path, payload: Any) -> Path:
-    """Write JSON to `path` via a temp file in the same folder and a rename, so readers never see half a file."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            json.dump(payload, f, indent=2)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path

@@ -235,7 +235,7 @@ def sweep_worker(item: Tuple[Any, Job], env: Dict[str, str]) -> dict:
         result = run_one(bench, scene, protocol, name, seed, env={**os.environ, **env})
     except (Exception, SystemExit) as exc:  # run_one exits on a failed training; keep the worker alive
         return {"error": str(exc), "log": str(run_log_path(bench.out, scene, protocol.name, name, seed))}
-    from hpgs_ns.datamanager import write_json_atomic
+    from hpgs_ns.atomic_write import write_json_atomic
 
     write_json_atomic(result_path(bench.out, scene, protocol.name, name, seed), result)
     return {"result": result}
@@ -244,7 +244,7 @@ def sweep_worker(item: Tuple[Any, Job], env: Dict[str, str]) -> dict:
 def run_sweep(bench: Any, jobs: Sequence[Job], config: ExecutorConfig) -> None:
     """Driver side: run `jobs` on the configured executor; every finished run's JSON ends up under `bench.out`."""
     from hpgs_ns.bench import result_path
-    from hpgs_ns.datamanager import write_json_atomic
+    from hpgs_ns.atomic_write import write_json_atomic
 
     if not jobs:
         return

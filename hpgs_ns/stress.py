@@ -27,6 +27,8 @@ from typing import Dict, List, Literal, Optional, Sequence, Tuple
 import numpy as np
 from rich.console import Console
 
+from hpgs_ns.atomic_write import atomic_path, write_json_atomic
+
 CONSOLE = Console(stderr=True)
 STRESS_FILE = "stress.json"
 EVAL_INTERVAL = 8  # the dataparser's Mip-NeRF 360 rule: every 8th image in file-name order is a test view
@@ -246,23 +248,12 @@ def _image_copies(scene: Path, name: str) -> List[Path]:
 def _replace_file(path: Path, write) -> None:
     """Write a new file beside `path` with `write(tmp_path)`, then rename it over `path` (which may be a hard link
     to the source scene's file: renaming over it leaves the source alone)."""
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix, dir=path.parent)
-    os.close(fd)
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_path(path, suffix=path.suffix) as tmp:
+        write(str(tmp))
 
 
 def _write_json(path: Path, payload) -> None:
-    _replace_file(path, lambda tmp: Path(tmp).write_text(json.dumps(payload, indent=1) + "\n"))
-
-
-def write_text_atomic(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    _replace_file(path, lambda tmp: Path(tmp).write_text(text))
+    write_json_atomic(path, payload, indent=1)
 
 
 # ------------------------------------------------------------------------------------------------------------

@@ -27,6 +27,8 @@ from nerfstudio.engine.schedulers import ExponentialDecayScheduler, ExponentialD
 from nerfstudio.engine.trainer import Trainer, TrainerConfig
 from torch.optim import Optimizer, lr_scheduler
 
+from hpgs_ns.atomic_write import write_json_atomic
+
 
 @dataclass
 class HpgsTrainerConfig(TrainerConfig):
@@ -65,8 +67,6 @@ def write_final_eval(trainer: Trainer, path: Path) -> Path:
         "checkpoint": str(trainer.checkpoint_dir / f"step-{trainer.step:09d}.ckpt"),
         "results": metrics,
     }
-    from hpgs_ns.datamanager import write_json_atomic  # lazy: the datamanager imports this module
-
     return write_json_atomic(path, payload)
 
 

@@ -9,7 +9,7 @@ every gradient (absgrad included); gradients are also checked against finite dif
 from __future__ import annotations
 
 import math
-from typing import Dict, Optional
+from typing import Dict
 
 import pytest
 import torch

@@ -23,8 +23,6 @@ the recipe and provenance; frozen pretrained backbones are rebuilt from their pa
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 from typing import Any, Callable, Dict, List, Optional, Sequence
 
@@ -32,6 +30,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from hpgs_ns.atomic_write import atomic_path
 from hpgs_ns import offline_weights as ow
 
 FORMAT = "hpgs-preference-model"
@@ -239,18 +238,8 @@ class PreferenceModel(nn.Module):
     def save(self, path: Path) -> Path:
         """Write the checkpoint to a temporary file beside `path`, then rename (never a half-written file)."""
         path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-        try:
-            with os.fdopen(fd, "wb") as f:
-                torch.save(self.checkpoint(), f)
-            umask = os.umask(0)
-            os.umask(umask)
-            os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; give the file the usual permissions
-            os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+        with atomic_path(path) as tmp:
+            torch.save(self.checkpoint(), tmp)
         return path
 
     @classmethod

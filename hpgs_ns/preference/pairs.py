@@ -10,13 +10,14 @@ from __future__ import annotations
 import csv
 import os
 import random
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Dict, Iterable, List, Optional, Sequence, Set, Tuple
 
 import numpy as np
 import torch
+
+from hpgs_ns.atomic_write import atomic_path
 
 COLUMNS = ("Image_1", "Image_2", "Human Preference")
 SKIPPED = "Skipped"
@@ -110,19 +111,13 @@ def read_usable_pairs(csv_paths: Iterable[Path], check_images: bool = True) -> L
 def write_rows_atomic(csv_path: Path, fieldnames: Sequence[str], rows: Sequence[Dict[str, object]]) -> None:
     """Write a CSV to a temporary file in the same folder, fsync, then rename over `csv_path`."""
     csv_path = Path(csv_path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{csv_path.name}.", suffix=".tmp", dir=csv_path.parent)
-    try:
-        with os.fdopen(fd, "w", newline="", encoding="utf-8") as f:
-            writer = csv.DictWriter(f, fieldnames=list(fieldnames), extrasaction="ignore")
-            writer.writeheader()
-            writer.writerows(rows)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, csv_path)
-        _fsync_dir(csv_path.parent)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_path(csv_path) as tmp, open(tmp, "w", newline="", encoding="utf-8") as f:
+        writer = csv.DictWriter(f, fieldnames=list(fieldnames), extrasaction="ignore")
+        writer.writeheader()
+        writer.writerows(rows)
+        f.flush()
+        os.fsync(f.fileno())
+    _fsync_dir(csv_path.parent)
 
 
 def _fsync_dir(directory: Path) -> None:

@@ -1,0 +1,107 @@
+"""Fisher's exact shortcuts (`sh-via-color`, `drop-hidden`): seconds per round and pairs, each on and off.
+
+Scores every candidate of one round with each combination on the same probes and reports seconds, the pairs
+differentiated (of those in the views' frusta), and how close the scores are to the plain computation
+(max relative difference; the shortcuts are exact, so only float rounding should show). Prints a table and
+writes JSON.
+
+    python benchmarks/fisher_shortcuts.py --run outputs/scene/hpgs/<timestamp> --out fisher_shortcuts.json
+    python benchmarks/fisher_shortcuts.py --synthetic occluded --steps 300 --out fisher_shortcuts.json   # CPU
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+COMBOS = [(False, False), (True, False), (False, True), (True, True)]  # (sh_via_color, drop_hidden)
+
+
+def load_run(run: Path):
+    from nerfstudio.utils.eval_utils import eval_setup
+
+    _, pipeline, _, step = eval_setup(run / "config.yml", test_mode="test")
+    pipeline.model.step = step  # load_state_dict sets 30000 (full SH degree); a round at `step` renders its own
+    return pipeline.datamanager, pipeline.model, step
+
+
+def train_synthetic(layout: str, steps: int, folder: Path):
+    """A short CPU run on an embedded procedural scene, 12 initial views, no rounds."""
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
+    from conftest import run_training, short_config
+
+    from hpgs_ns.synthetic_scene import make_scene
+
+    scene = make_scene(folder / layout, layout=layout, num_cameras=40, width=128, height=96, num_points=3000, seed=0)
+    cfg = short_config(scene, folder / "run", steps=steps, rounds=0, initial=12)
+    cfg.pipeline.model.sh_degree_interval = max(steps // 4, 1)  # reach SH degree 3 within the run
+    trainer = run_training(cfg)
+    return trainer.pipeline.datamanager, trainer.pipeline.model, steps
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    src = ap.add_mutually_exclusive_group(required=True)
+    src.add_argument("--run", type=Path, help="run folder holding config.yml")
+    src.add_argument("--synthetic", help="train this embedded layout (ring, occluded, sparse-objects) on the CPU")
+    ap.add_argument("--steps", type=int, default=300, help="training steps for --synthetic")
+    ap.add_argument("--probes", type=int, default=16)
+    ap.add_argument("--repeats", type=int, default=2)
+    ap.add_argument("--out", type=Path, required=True, help="JSON to write")
+    args = ap.parse_args()
+
+    from hpgs_ns.atomic_write import write_json_atomic
+    from hpgs_ns.selectors.fisher import FisherSelectorConfig
+
+    with tempfile.TemporaryDirectory() as tmp:
+        dm, model, step = load_run(args.run) if args.run else train_synthetic(args.synthetic, args.steps, Path(tmp))
+        cuda = torch.cuda.is_available()
+
+        def one_round(sh_via_color: bool, drop_hidden: bool, seed: int):
+            ctx = dm.selection_context(step, model)
+            ctx.generator, ctx.num_to_pick = torch.Generator().manual_seed(seed), 1
+            cfg = FisherSelectorConfig(probes=args.probes, sh_via_color=sh_via_color, drop_hidden=drop_hidden)
+            if cuda:
+                torch.cuda.synchronize()
+            start = time.perf_counter()
+            selection = cfg.setup().select(ctx)
+            if cuda:
+                torch.cuda.synchronize()
+            return time.perf_counter() - start, selection
+
+        one_round(True, True, 0)  # warm-up: kernels, allocator
+        rows, plain = [], None
+        for sh_via_color, drop_hidden in COMBOS:
+            runs = [one_round(sh_via_color, drop_hidden, seed) for seed in range(args.repeats)]
+            seconds = [r[0] for r in runs]
+            selection = runs[0][1]
+            if plain is None:
+                plain = selection.scores
+            rel = max(abs(selection.scores[c] - plain[c]) / max(abs(plain[c]), 1e-30) for c in plain)
+            row = {
+                "sh_via_color": sh_via_color, "drop_hidden": drop_hidden, "seconds_per_round": sum(seconds) / len(seconds),
+                "pairs_differentiated": selection.work.get("pairs_differentiated"),
+                "pairs_in_frustum": selection.work.get("pairs_in_frustum"),
+                "max_relative_score_difference": rel, "pick": selection.indices,
+            }
+            rows.append(row)
+            print(f"sh_via_color={sh_via_color!s:5} drop_hidden={drop_hidden!s:5} {row['seconds_per_round']:8.2f} s/round  "
+                  f"pairs {row['pairs_differentiated']:.0f} of {row['pairs_in_frustum']:.0f}  "
+                  f"scores vs plain {rel:.1e}  pick {selection.indices}", flush=True)
+        device = torch.cuda.get_device_name(0) if cuda else f"cpu ({platform.processor() or 'x86_64'})"
+        write_json_atomic(args.out, {
+            "source": str(args.run or f"synthetic:{args.synthetic}"), "step": step, "gaussians": int(model.num_points),
+            "probes": args.probes, "candidates": len(dm.candidates), "active": len(dm.active), "device": device,
+            "threads": torch.get_num_threads(), "rows": rows,
+        })
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,44 @@
+"""Files written so that no reader ever sees half of one: a temporary file beside the target, then a rename.
+
+Sweeps, labelling sessions and training runs can be killed at any moment; a rename within one folder is atomic
+on POSIX, so the target holds either its old or its new content. (The standard library has no such writer.)
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import tempfile
+from pathlib import Path
+from typing import Any, Iterator
+
+
+@contextlib.contextmanager
+def atomic_path(path: Path, suffix: str = ".tmp") -> Iterator[Path]:
+    """A temporary path beside `path` to write to; renamed over `path` (with the usual permissions: mkstemp
+    makes 0600) when the block ends, removed if it raises. `suffix`: e.g. ".png" where the writer reads the
+    format from the name."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix, dir=path.parent)
+    os.close(fd)
+    try:
+        yield Path(tmp)
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def write_text_atomic(path: Path, text: str) -> Path:
+    with atomic_path(path) as tmp:
+        tmp.write_text(text, encoding="utf-8")
+    return Path(path)
+
+
+def write_json_atomic(path: Path, payload: Any, indent: int = 2) -> Path:
+    return write_text_atomic(path, json.dumps(payload, indent=indent) + "\n")
