@@ -43,7 +43,10 @@ def train_synthetic(layout: str, steps: int, folder: Path):
 
     import numpy as np
 
-    random.seed(0), np.random.seed(0), torch.manual_seed(0)  # as ns-train does with --machine.seed 0
+    # Seeded as ns-train seeds with --machine.seed 0 (run_training alone does not).
+    random.seed(0)
+    np.random.seed(0)
+    torch.manual_seed(0)
     scene = make_scene(folder / layout, layout=layout, num_cameras=40, width=128, height=96, num_points=3000, seed=0)
     cfg = short_config(scene, folder / "run", steps=steps, rounds=0, initial=12)
     cfg.pipeline.model.sh_degree_interval = max(steps // 4, 1)  # reach SH degree 3 within the run
