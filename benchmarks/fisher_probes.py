@@ -25,6 +25,17 @@ def spearman(a: List[float], b: List[float]) -> float:
     return float((ra * rb).sum() / (ra.norm() * rb.norm()))
 
 
+def load_run(run: Path):
+    """(datamanager, model, step) of a run's last checkpoint, set up as a selection round at that step sees it."""
+    from nerfstudio.utils.eval_utils import eval_setup
+
+    _, pipeline, _, step = eval_setup(run / "config.yml", test_mode="test")
+    # splatfacto's load_state_dict sets step 30000 (full SH degree); a round at this step renders with the SH
+    # degree of the step instead (up to 2026-11 this script scored degree 3 where the run's round used 1).
+    pipeline.model.step = step
+    return pipeline.datamanager, pipeline.model, step
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--run", type=Path, required=True, help="run folder holding config.yml")
@@ -38,16 +49,10 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3, help="seeds per K (the spread of the estimate)")
     args = ap.parse_args()
 
-    from nerfstudio.utils.eval_utils import eval_setup
-
     from hpgs_ns.atomic_write import write_json_atomic
     from hpgs_ns.selectors.fisher import FisherSelectorConfig
 
-    _, pipeline, _, step = eval_setup(args.run / "config.yml", test_mode="test")
-    dm, model = pipeline.datamanager, pipeline.model
-    # splatfacto's load_state_dict sets step 30000 (full SH degree); a round at this step renders with the SH
-    # degree of the step instead (up to 2026-11 this script scored degree 3 where the run's round used 1).
-    model.step = step
+    dm, model, step = load_run(args.run)
 
     view_batches = args.view_batch or [FisherSelectorConfig().view_batch]
 

@@ -13,35 +13,26 @@ from __future__ import annotations
 
 import argparse
 import platform
+import random
+import sys
 import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
 import torch
+
+from fisher_probes import load_run  # benchmarks/ is on sys.path when this script runs
 
 COMBOS = [(False, False), (True, False), (False, True), (True, True)]  # (sh_via_color, drop_hidden)
 
 
-def load_run(run: Path):
-    from nerfstudio.utils.eval_utils import eval_setup
-
-    _, pipeline, _, step = eval_setup(run / "config.yml", test_mode="test")
-    pipeline.model.step = step  # load_state_dict sets 30000 (full SH degree); a round at `step` renders its own
-    return pipeline.datamanager, pipeline.model, step
-
-
 def train_synthetic(layout: str, steps: int, folder: Path):
     """A short CPU run on an embedded procedural scene, 12 initial views, no rounds."""
-    import sys
-
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
     from conftest import run_training, short_config
 
     from hpgs_ns.synthetic_scene import make_scene
-
-    import random
-
-    import numpy as np
 
     # Seeded as ns-train seeds with --machine.seed 0 (run_training alone does not).
     random.seed(0)

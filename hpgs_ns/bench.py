@@ -26,8 +26,8 @@ from typing import Dict, List, Literal, Optional, Sequence, Tuple
 import tyro
 from rich.console import Console
 
-from hpgs_ns.executors import ExecutorConfig, run_sweep
 from hpgs_ns.atomic_write import write_text_atomic
+from hpgs_ns.executors import ExecutorConfig, run_sweep
 from hpgs_ns.stress import PerturbationName, StressConfig, StressError, stress_plot, stress_table, stressed_scenes
 
 CONSOLE = Console(stderr=True)

@@ -116,11 +116,7 @@ def render_pairs(
         grad_params = [n for n in grad_params if n not in SH_PARAMS]
     leaves = {n: t[gids].requires_grad_(n in grad_params) for n, t in params.items()}
 
-    cov = _quat_scale_to_covar(leaves["quats"], torch.exp(leaves["scales"]))
-    proj = _project(leaves["means"], cov, viewmats[cids], Ks[cids], width, height, EPS2D, False)
-    opacities = torch.sigmoid(leaves["opacities"]).reshape(-1)
-    if model.config.rasterize_mode == "antialiased":
-        opacities = opacities * proj["compensations"]
+    proj, opacities = project_pairs(model, leaves, cids, viewmats, Ks, width, height)
     offset = bases = None
     if degree is None:
         colors = torch.sigmoid(leaves["features_dc"])
@@ -142,16 +138,24 @@ def render_pairs(
     )
 
 
+def project_pairs(model, p: Dict[str, Tensor], cids: Tensor, viewmats: Tensor, Ks: Tensor, width: int, height: int):
+    """gsplat's projection of each pair (its raw `means`, `quats`, `scales`, `opacities` in `p`, [nnz, ...]) into
+    its view: (`_project`'s dict, the opacities splatfacto rasterizes with)."""
+    cov = _quat_scale_to_covar(p["quats"], torch.exp(p["scales"]))
+    proj = _project(p["means"], cov, viewmats[cids], Ks[cids], width, height, EPS2D, False)
+    opacities = torch.sigmoid(p["opacities"]).reshape(-1)
+    if model.config.rasterize_mode == "antialiased":
+        opacities = opacities * proj["compensations"]
+    return proj, opacities
+
+
 def composited(model, params, cids, gids, radii, viewmats, Ks, width, height, rasterize, backgrounds) -> Tensor:
     """[nnz] bool: whether each pair is composited into at least one pixel. With zero colours that require grad
     and an all-ones upstream gradient, a pair's colour gradient is sum over pixels of alpha * T: > 0 exactly
     when it is composited somewhere (no cancellation: every term is >= 0)."""
     with torch.no_grad():
-        cov = _quat_scale_to_covar(params["quats"][gids], torch.exp(params["scales"][gids]))
-        proj = _project(params["means"][gids], cov, viewmats[cids], Ks[cids], width, height, EPS2D, False)
-        opacities = torch.sigmoid(params["opacities"][gids]).reshape(-1)
-        if model.config.rasterize_mode == "antialiased":
-            opacities = opacities * proj["compensations"]
+        pair_params = {n: params[n][gids] for n in ("means", "quats", "scales", "opacities")}
+        proj, opacities = project_pairs(model, pair_params, cids, viewmats, Ks, width, height)
     probe = torch.zeros(gids.shape[0], 3, dtype=opacities.dtype, device=opacities.device, requires_grad=True)
     with torch.enable_grad():
         image, _ = rasterize(proj["means2d"], proj["conics"], probe, opacities, radii, proj["depths"], cids, gids,

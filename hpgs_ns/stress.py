@@ -201,7 +201,7 @@ def perturbed_copy(scene: Path, name: str, out_dir: Path, config: Optional[Stres
         # One stream per perturbation, so adding a perturbation never changes another's draws.
         rng = np.random.default_rng([config.seed, zlib.crc32(name.encode())])
         report = perturbation.apply(tmp / "scene", train, rng)
-        _write_json(tmp / "scene" / STRESS_FILE, {"params": params, "report": report})
+        write_json_atomic(tmp / "scene" / STRESS_FILE, {"params": params, "report": report}, indent=1)
         if target.exists():
             os.rename(target, tmp / "old")
         os.rename(tmp / "scene", target)
@@ -250,10 +250,6 @@ def _replace_file(path: Path, write) -> None:
     to the source scene's file: renaming over it leaves the source alone)."""
     with atomic_path(path, suffix=path.suffix) as tmp:
         write(str(tmp))
-
-
-def _write_json(path: Path, payload) -> None:
-    write_json_atomic(path, payload, indent=1)
 
 
 # ------------------------------------------------------------------------------------------------------------

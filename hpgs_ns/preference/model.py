@@ -30,8 +30,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from hpgs_ns.atomic_write import atomic_path
 from hpgs_ns import offline_weights as ow
+from hpgs_ns.atomic_write import atomic_path
 
 FORMAT = "hpgs-preference-model"
 VERSION = 1
