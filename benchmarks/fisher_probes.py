@@ -44,6 +44,12 @@ def main() -> None:
     ap.add_argument("--reference", type=int, default=256)
     ap.add_argument("--view-batch", type=int, nargs="+", default=None,
                     help="views per batched render, each timed (default: the selector's default)")
+    ap.add_argument("--resolution-scale", type=float, nargs="+", default=None,
+                    help="render scales to time and rank against the reference (default: the selector's default)")
+    ap.add_argument("--train-probe-factor", type=int, nargs="+", default=None,
+                    help="H_train probe factors to time and rank (default: the selector's default)")
+    ap.add_argument("--reference-scale", type=float, default=None,
+                    help="render scale of the reference ranking (default: the selector's default)")
     ap.add_argument("--profile", type=Path, default=None,
                     help="also profile one round at the default K with torch.profiler and write its op table here")
     ap.add_argument("--repeats", type=int, default=3, help="seeds per K (the spread of the estimate)")
@@ -54,13 +60,18 @@ def main() -> None:
 
     dm, model, step = load_run(args.run)
 
-    view_batches = args.view_batch or [FisherSelectorConfig().view_batch]
+    default = FisherSelectorConfig()
+    view_batches = args.view_batch or [default.view_batch]
+    res_scales = args.resolution_scale or [default.resolution_scale]
+    factors = args.train_probe_factor or [default.train_probe_factor]
 
-    def scores(k: int, seed: int, view_batch: int = view_batches[0]) -> Dict[int, float]:
+    def scores(k: int, seed: int, view_batch: int = view_batches[0], scale: float = default.resolution_scale,
+               factor: int = default.train_probe_factor) -> Dict[int, float]:
         ctx = dm.selection_context(step, model)
         ctx.generator = torch.Generator().manual_seed(seed)
         ctx.num_to_pick = 1
-        return FisherSelectorConfig(probes=k, view_batch=view_batch).setup().select(ctx).scores
+        config = FisherSelectorConfig(probes=k, view_batch=view_batch, resolution_scale=scale, train_probe_factor=factor)
+        return config.setup().select(ctx).scores
 
     t = time.perf_counter()
     scores(4, 0)  # warm-up (CUDA kernels, allocator)
@@ -78,32 +89,34 @@ def main() -> None:
         table = prof.key_averages().table(sort_by=sort, row_limit=40)
         args.profile.write_text(table)
         print(table, flush=True)
-    ref = scores(args.reference, 12345)
+    ref = scores(args.reference, 12345, scale=args.reference_scale or default.resolution_scale)
     order = sorted(ref)
     ref_list = [ref[c] for c in order]
     best = max(ref, key=ref.get)
     rows = []
-    for vb, k in [(vb, k) for vb in view_batches for k in args.probes]:
+    grid = [(vb, k, sc, f) for vb in view_batches for k in args.probes for sc in res_scales for f in factors]
+    for vb, k, sc, f in grid:
         rhos, tops, secs = [], [], []
         for seed in range(args.repeats):
             if torch.cuda.is_available():
                 torch.cuda.synchronize()
             t = time.perf_counter()
-            s = scores(k, seed, vb)
+            s = scores(k, seed, vb, sc, f)
             if torch.cuda.is_available():
                 torch.cuda.synchronize()
             secs.append(time.perf_counter() - t)
             rhos.append(spearman([s[c] for c in order], ref_list))
             tops.append(max(s, key=s.get) == best)
-        row = {"probes": k, "view_batch": vb, "seconds_per_round": sum(secs) / len(secs), "spearman_vs_reference": sum(rhos) / len(rhos),
+        row = {"probes": k, "view_batch": vb, "resolution_scale": sc, "train_probe_factor": f, "seconds_per_round": sum(secs) / len(secs), "spearman_vs_reference": sum(rhos) / len(rhos),
                "spearman_min": min(rhos), "top_pick_agrees": sum(tops) / len(tops)}
         rows.append(row)
-        print(f"K={k:4d} view_batch={vb:4d}  {row['seconds_per_round']:7.2f} s/round  Spearman {row['spearman_vs_reference']:.3f} "
+        print(f"K={k:4d} view_batch={vb:4d} scale={sc:.2f} train_factor={f}  {row['seconds_per_round']:7.2f} s/round  Spearman {row['spearman_vs_reference']:.3f} "
               f"(min {row['spearman_min']:.3f})  top pick agrees {100 * row['top_pick_agrees']:.0f}%", flush=True)
     device = torch.cuda.get_device_name(0) if torch.cuda.is_available() else f"cpu ({platform.processor() or 'x86_64'})"
     write_json_atomic(args.out, {
         "run": str(args.run), "step": step, "gaussians": int(model.num_points), "candidates": len(ref),
-        "active": len(dm.active), "reference_probes": args.reference, "first_call_seconds": first_call, "device": device, "rows": rows,
+        "active": len(dm.active), "reference_probes": args.reference,
+        "reference_scale": args.reference_scale or default.resolution_scale, "first_call_seconds": first_call, "device": device, "rows": rows,
     })
 
 
