@@ -1,4 +1,4 @@
-"""Fisher's exact shortcuts (`sh-via-color`, `drop-hidden`): seconds per round and pairs, each on and off.
+"""Fisher's exact shortcuts (`sh-via-color`, `drop-hidden`, `linearize`): seconds per round and pairs, on and off.
 
 Scores every candidate of one round with each combination on the same probes and reports seconds, the pairs
 differentiated (of those in the views' frusta), and how close the scores are to the plain computation
@@ -24,7 +24,9 @@ import torch
 
 from fisher_probes import load_run  # benchmarks/ is on sys.path when this script runs
 
-COMBOS = [(False, False), (True, False), (False, True), (True, True)]  # (sh_via_color, drop_hidden)
+SHORTCUTS = ("sh_via_color", "drop_hidden", "linearize")
+# Plain first (the scores' reference), each shortcut alone, then the defaults (`linearize` implies `sh_via_color`).
+COMBOS = [(False, False, False), (True, False, False), (False, True, False), (True, False, True), (True, True, True)]
 
 
 def train_synthetic(layout: str, steps: int, folder: Path):
@@ -63,10 +65,10 @@ def main() -> None:
         dm, model, step = load_run(args.run) if args.run else train_synthetic(args.synthetic, args.steps, Path(tmp))
         cuda = torch.cuda.is_available()
 
-        def one_round(sh_via_color: bool, drop_hidden: bool, seed: int):
+        def one_round(combo, seed: int):
             ctx = dm.selection_context(step, model)
             ctx.generator, ctx.num_to_pick = torch.Generator().manual_seed(seed), 1
-            cfg = FisherSelectorConfig(probes=args.probes, sh_via_color=sh_via_color, drop_hidden=drop_hidden)
+            cfg = FisherSelectorConfig(probes=args.probes, **dict(zip(SHORTCUTS, combo)))
             if cuda:
                 torch.cuda.synchronize()
             start = time.perf_counter()
@@ -75,23 +77,24 @@ def main() -> None:
                 torch.cuda.synchronize()
             return time.perf_counter() - start, selection
 
-        one_round(True, True, 0)  # warm-up: kernels, allocator
+        one_round(COMBOS[-1], 0)  # warm-up: kernels, allocator
         rows, plain = [], None
-        for sh_via_color, drop_hidden in COMBOS:
-            runs = [one_round(sh_via_color, drop_hidden, seed) for seed in range(args.repeats)]
+        for combo in COMBOS:
+            runs = [one_round(combo, seed) for seed in range(args.repeats)]
             seconds = [r[0] for r in runs]
             selection = runs[0][1]
             if plain is None:
                 plain = selection.scores
             rel = max(abs(selection.scores[c] - plain[c]) / max(abs(plain[c]), 1e-30) for c in plain)
             row = {
-                "sh_via_color": sh_via_color, "drop_hidden": drop_hidden, "seconds_per_round": sum(seconds) / len(seconds),
+                **dict(zip(SHORTCUTS, combo)), "seconds_per_round": sum(seconds) / len(seconds),
                 "pairs_differentiated": selection.work.get("pairs_differentiated"),
                 "pairs_in_frustum": selection.work.get("pairs_in_frustum"),
                 "max_relative_score_difference": rel, "pick": selection.indices,
             }
             rows.append(row)
-            print(f"sh_via_color={sh_via_color!s:5} drop_hidden={drop_hidden!s:5} {row['seconds_per_round']:8.2f} s/round  "
+            flags = " ".join(f"{n}={v!s:5}" for n, v in zip(SHORTCUTS, combo))
+            print(f"{flags} {row['seconds_per_round']:8.2f} s/round  "
                   f"pairs {row['pairs_differentiated']:.0f} of {row['pairs_in_frustum']:.0f}  "
                   f"scores vs plain {rel:.1e}  pick {selection.indices}", flush=True)
         device = torch.cuda.get_device_name(0) if cuda else f"cpu ({platform.processor() or 'x86_64'})"

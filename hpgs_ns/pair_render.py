@@ -10,14 +10,21 @@ in PyTorch (`cpu_raster._project`: gsplat's EWA maths), and composited by gsplat
 (CUDA) or its pure-PyTorch twin `cpu_raster.rasterize_pairs`. One backward pass then gives every pair's gradient:
 every view's own gradient, for a whole batch of views at once.
 
+With `linearize` the probes stop at the rasterizer: each pair's projected inputs (means2d, conics, opacity, colour)
+become the leaves, the Jacobian of those 9 numbers w.r.t. the pair's raw parameters is computed once per batch
+(9 batched backward passes of the projection), and each probe's gradient is the rasterizer's backward followed by
+one [9 x P] product per pair. The projection's autograd (two thirds of a Fisher round's GPU time at step 14000,
+benchmarks/results/gpu/fisher_profile_bonsai_step14000_h100.txt) then runs 9 times per batch instead of once per
+probe.
+
 No library offers per-view gradients of a batched render (gsplat's batched API shares the 3D parameters), which
 is why this is written here.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Dict, Sequence, Tuple
+from dataclasses import dataclass, field
+from typing import Dict, List, Sequence, Tuple
 
 import torch
 from torch import Tensor
@@ -29,6 +36,8 @@ NEAR_PLANE = 0.01  # splatfacto's near plane
 EPS2D = 0.3  # gsplat's default low-pass (splatfacto keeps it)
 TILE_SIZE = 16
 PAIRS_PER_CHUNK = 1 << 22  # (camera, Gaussian) pairs tested at once when culling (bounds memory, not results)
+JACOBIAN_PAIRS_PER_CHUNK = 1 << 20  # pairs whose projection Jacobian is taken at once (9 copies of its graph)
+RASTER_INPUTS = (("means2d", 2), ("conics", 3), ("opacities", 1), ("colors", 3))  # what the rasterizer reads per pair
 
 
 @dataclass
@@ -50,6 +59,36 @@ class PairRender:
     """[nnz, (degree+1)^2] the SH bases B_k at each pair's viewing direction (detached), with `color_offset`."""
     pairs_in_frustum: int = 0
     """Pairs whose footprint reaches a view, before `drop_hidden` left out those composited nowhere."""
+    raster_inputs: List[Tensor] | None = None
+    """`linearize`: the rasterizer's per-pair inputs (RASTER_INPUTS), leaves of `image`'s graph."""
+    jacobian: Tensor | None = None
+    """`linearize`: [nnz, 9, P] d(raster inputs) / d(the pair's raw parameters `jacobian_params`, flattened)."""
+    jacobian_params: List[str] = field(default_factory=list)
+    """`linearize`: the parameters laid out along the Jacobian's last dim, in order."""
+    color_mask: Tensor | None = None
+    """`linearize` with SH: [nnz, 3] whether each colour channel is above the clamp at 0 (else its gradient is 0)."""
+
+    def gradients(self, grad_image: Tensor, retain_graph: bool = True) -> Dict[str, Tensor]:
+        """Each pair's gradient of <grad_image, image> w.r.t. its differentiated parameters (by name, [nnz, ...]
+        like its leaf) and, where the SH coefficients go through the colour, "color" ([nnz, 3], before the clamp)."""
+        if self.jacobian is None:
+            names = [n for n, t in self.leaves.items() if t.requires_grad]
+            inputs = [self.leaves[n] for n in names] + ([self.color_offset] if self.color_offset is not None else [])
+            grads = torch.autograd.grad(self.image, inputs, grad_image, retain_graph=retain_graph, allow_unused=True)
+            grads = [torch.zeros_like(t) if g is None else g for t, g in zip(inputs, grads)]
+            return dict(zip(names + (["color"] if self.color_offset is not None else []), grads))
+        grads = torch.autograd.grad(self.image, self.raster_inputs, grad_image, retain_graph=retain_graph, allow_unused=True)
+        g_raster = torch.cat([torch.zeros_like(t) if g is None else g for t, g in zip(self.raster_inputs, grads)], 1)
+        flat = (g_raster[:, :, None] * self.jacobian).sum(1)  # [nnz, P]: chain rule through the projection
+        out, start = {}, 0
+        for name in self.jacobian_params:
+            shape = self.leaves[name].shape
+            width = shape[1:].numel()
+            out[name] = flat[:, start : start + width].reshape(shape)
+            start += width
+        if self.color_mask is not None:
+            out["color"] = g_raster[:, -3:] * self.color_mask
+        return out
 
 
 def active_sh_degree(model) -> int | None:
@@ -86,7 +125,7 @@ def visible_pairs(means: Tensor, covars: Tensor, viewmats: Tensor, Ks: Tensor, w
 
 def render_pairs(
     model, viewmats: Tensor, Ks: Tensor, width: int, height: int, grad_params: Sequence[str], backend: str,
-    sh_via_color: bool = False, drop_hidden: bool = False,
+    sh_via_color: bool = False, drop_hidden: bool = False, linearize: bool = False,
 ) -> PairRender:
     """Eval-mode RGB of C views of one size ([C, 4, 4] world-to-camera, [C, 3, 3] intrinsics), differentiable
     w.r.t. each pair's copy of `grad_params` (names of `model.gauss_params`). `backend`: "gsplat" or "cpu".
@@ -98,7 +137,11 @@ def render_pairs(
 
     `drop_hidden`: leave out the pairs the rasterizer composites into no pixel (behind opaque surfaces, or alpha
     below 1/255 everywhere). They change no pixel and get exactly zero gradient, so the image and every kept
-    pair's gradient are the same; finding them costs one forward and backward without parameter gradients."""
+    pair's gradient are the same; finding them costs one forward and backward without parameter gradients.
+
+    `linearize`: `image` is differentiable w.r.t. `raster_inputs` only, and `PairRender.gradients` carries the
+    gradient on to the parameters with each pair's projection Jacobian (the SH coefficients through the colour,
+    as with `sh_via_color`). Same gradients; each probe then back-propagates through the rasterizer alone."""
     params = {n: t.detach() for n, t in model.gauss_params.items()}
     C = viewmats.shape[0]
     with torch.no_grad():
@@ -111,30 +154,87 @@ def render_pairs(
         keep = composited(model, params, cids, gids, radii, viewmats, Ks, width, height, rasterize, backgrounds)
         cids, gids, radii = cids[keep], gids[keep], radii[keep]
     degree = active_sh_degree(model)
-    via_color = sh_via_color and degree is not None
+    via_color = (sh_via_color or linearize) and degree is not None
     if via_color:
         grad_params = [n for n in grad_params if n not in SH_PARAMS]
+    if linearize:
+        return _render_linearized(model, params, cids, gids, radii, viewmats, Ks, width, height, grad_params, degree,
+                                  rasterize, backgrounds, in_frustum)
     leaves = {n: t[gids].requires_grad_(n in grad_params) for n, t in params.items()}
 
     proj, opacities = project_pairs(model, leaves, cids, viewmats, Ks, width, height)
     offset = bases = None
-    if degree is None:
-        colors = torch.sigmoid(leaves["features_dc"])
-    else:
-        campos = torch.inverse(viewmats)[:, :3, 3]
-        dirs = leaves["means"] - campos[cids]
-        coeffs = torch.cat((leaves["features_dc"][:, None, :], leaves["features_rest"]), dim=1)
-        colors = _sh_to_color(degree, dirs, coeffs) + 0.5
-        if via_color:
-            offset = torch.zeros_like(colors, requires_grad=True)
-            colors = colors + offset
-            with torch.no_grad():
-                bases = _sh_bases(degree, dirs)
+    colors = pair_colors(model, leaves, cids, viewmats, degree)
+    if via_color:
+        offset = torch.zeros_like(colors, requires_grad=True)
+        colors = colors + offset
+        bases = pair_sh_bases(leaves, cids, viewmats, degree)
+    if degree is not None:
         colors = torch.clamp_min(colors, 0.0)
     image, _ = rasterize(proj["means2d"], proj["conics"], colors, opacities, radii, proj["depths"], cids, gids, C, width, height, backgrounds)
     return PairRender(
         image=image, leaves=leaves, camera_ids=cids, gaussian_ids=gids, color_offset=offset, sh_bases=bases,
         pairs_in_frustum=in_frustum,
+    )
+
+
+def pair_colors(model, p: Dict[str, Tensor], cids: Tensor, viewmats: Tensor, degree: int | None) -> Tensor:
+    """splatfacto's colour of each pair before the clamp at 0 (SH at the pair's viewing direction, or sigmoid RGB)."""
+    if degree is None:
+        return torch.sigmoid(p["features_dc"])
+    campos = torch.inverse(viewmats)[:, :3, 3]
+    coeffs = torch.cat((p["features_dc"][:, None, :], p["features_rest"]), dim=1)
+    return _sh_to_color(degree, p["means"] - campos[cids], coeffs) + 0.5
+
+
+@torch.no_grad()
+def pair_sh_bases(p: Dict[str, Tensor], cids: Tensor, viewmats: Tensor, degree: int) -> Tensor:
+    """[nnz, (degree+1)^2] the SH bases at each pair's viewing direction (what `sh_squared_gradients` needs)."""
+    campos = torch.inverse(viewmats)[:, :3, 3]
+    return _sh_bases(degree, p["means"] - campos[cids])
+
+
+def _render_linearized(model, params, cids, gids, radii, viewmats, Ks, width, height, grad_params, degree, rasterize,
+                       backgrounds, in_frustum) -> PairRender:
+    """`render_pairs(linearize=True)`: the rasterizer's inputs as leaves, plus each pair's projection Jacobian."""
+    # With SH the coefficients are left to the colour gradient; sigmoid RGB colours are chained like the rest.
+    theta = [n for n in grad_params if n in params]
+    leaves = {n: t[gids] for n, t in params.items()}
+    raster = [torch.empty(gids.shape[0], w, dtype=leaves["means"].dtype, device=leaves["means"].device) for _, w in RASTER_INPUTS]
+    depths = torch.empty(gids.shape[0], dtype=leaves["means"].dtype, device=leaves["means"].device)
+    P = sum(leaves[n].shape[1:].numel() for n in theta)
+    jac = leaves["means"].new_zeros(gids.shape[0], 9, P)
+    eye = torch.eye(9, dtype=jac.dtype, device=jac.device)
+    for start in range(0, gids.shape[0], JACOBIAN_PAIRS_PER_CHUNK):
+        rows = slice(start, start + JACOBIAN_PAIRS_PER_CHUNK)
+        with torch.enable_grad():
+            p = {n: t[rows].requires_grad_(n in theta) for n, t in leaves.items()}
+            proj, opacities = project_pairs(model, p, cids[rows], viewmats, Ks, width, height)
+            colors = torch.clamp_min(pair_colors(model, p, cids[rows], viewmats, degree), 0.0)
+            y = torch.cat((proj["means2d"], proj["conics"], opacities[:, None], colors), 1)
+            if theta:
+                # Row k of every pair's Jacobian at once (the pairs are independent): 9 batched backward passes.
+                rows_k = eye[:, None, :].expand(9, y.shape[0], 9)
+                grads = torch.autograd.grad(y, [p[n] for n in theta], rows_k, is_grads_batched=True, allow_unused=True)
+                cols = [torch.zeros(9, y.shape[0], p[n][0].numel(), dtype=y.dtype, device=y.device) if g is None
+                        else g.reshape(9, y.shape[0], -1) for n, g in zip(theta, grads)]
+                jac[rows] = torch.cat(cols, 2).permute(1, 0, 2)
+        y = y.detach()
+        for t, part in zip(raster, y.split([w for _, w in RASTER_INPUTS], 1)):
+            t[rows] = part
+        depths[rows] = proj["depths"].detach()
+    bases = mask = None
+    if degree is not None:
+        bases = pair_sh_bases(leaves, cids, viewmats, degree)
+        with torch.no_grad():
+            mask = (pair_colors(model, leaves, cids, viewmats, degree) > 0).to(jac.dtype)
+    raster = [t.requires_grad_() for t in raster]
+    means2d, conics, opacities, colors = raster
+    image, _ = rasterize(means2d, conics, colors, opacities[:, 0], radii, depths, cids, gids, viewmats.shape[0], width,
+                         height, backgrounds)
+    return PairRender(
+        image=image, leaves=leaves, camera_ids=cids, gaussian_ids=gids, sh_bases=bases, pairs_in_frustum=in_frustum,
+        raster_inputs=raster, jacobian=jac, jacobian_params=theta, color_mask=mask,
     )
 
 

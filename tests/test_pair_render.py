@@ -130,6 +130,41 @@ def test_sh_squared_gradients_from_the_colour_gradient_equal_autograds(interval,
         assert torch.allclose(both[0][name], both[1][name], rtol=1e-10, atol=1e-15), name
 
 
+@pytest.mark.parametrize("sh_degree, rotations, mode", [(3, False, "classic"), (0, True, "antialiased")])
+def test_linearized_gradients_equal_autograds(sh_degree, rotations, mode):
+    """`linearize`: the rasterizer's backward chained with each pair's projection Jacobian gives every pair the
+    gradient autograd gives it through the whole graph (SH through the colour; sigmoid RGB chained like the rest;
+    the antialiased compensation and the quaternions included)."""
+    model = random_splat(sh_degree=max(sh_degree, 1))
+    model.config.rasterize_mode = mode
+    if sh_degree == 0:
+        model.config.sh_degree = 0
+        model.gauss_params["features_rest"] = model.gauss_params["features_rest"][:, :0]
+    model.gauss_params["features_dc"] = model.gauss_params["features_dc"] - 0.4  # some colours clamped at 0
+    viewmats, Ks, W, H = ring_cameras()
+    names = ["means", "features_dc", "features_rest", "scales", "opacities"] + (["quats"] if rotations else [])
+    full = render_pairs(model, viewmats, Ks, W, H, names, backend="cpu")
+    lin = render_pairs(model, viewmats, Ks, W, H, names, backend="cpu", linearize=True)
+    assert torch.allclose(lin.image, full.image, rtol=0, atol=1e-12)
+    assert torch.equal(lin.camera_ids, full.camera_ids) and not lin.leaves["means"].requires_grad
+    assert lin.jacobian.shape == (full.camera_ids.numel(), 9, 7 + 4 * rotations + 3 * (sh_degree == 0))
+    eps = torch.randint(0, 2, full.image.shape, generator=torch.Generator().manual_seed(6)).double() * 2 - 1
+    g_full = full.gradients(eps)
+    g_lin = lin.gradients(eps)
+    for name in [n for n in names if sh_degree == 0 or n not in ("features_dc", "features_rest")]:
+        assert torch.allclose(g_lin[name], g_full[name], rtol=1e-9, atol=1e-13), (name, (g_lin[name] - g_full[name]).abs().max())
+    if sh_degree:
+        assert 0 < int((lin.color_mask == 0).sum()) < lin.color_mask.numel()  # the clamp is exercised
+        dc, rest = sh_squared_gradients(lin.sh_bases, g_lin["color"].square(), 15)
+        assert torch.allclose(dc, g_full["features_dc"].square(), rtol=1e-9, atol=1e-15)
+        assert torch.allclose(rest, g_full["features_rest"].square(), rtol=1e-9, atol=1e-15)
+    # The Fisher selector's per-pair diagonal is the same either way (same probes).
+    selector = FisherSelectorConfig(probes=3, include_rotations=rotations).setup()
+    both = [selector.pair_squares(pr, 3, torch.Generator().manual_seed(7)) for pr in (full, lin)]
+    for name in selector.param_names():
+        assert torch.allclose(both[0][name], both[1][name], rtol=1e-9, atol=1e-15), name
+
+
 def test_drop_hidden_leaves_out_only_pairs_with_no_pixel():
     """Opaque Gaussians hide others: those pairs go, the image and every kept pair's gradient stay the same, and
     the dropped ones had exactly zero gradient."""
@@ -180,7 +215,8 @@ def test_gsplat_backend_matches_the_cpu_twin():
 @pytest.mark.cuda
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device (gsplat's packed kernels)")
 def test_fisher_shortcuts_on_gsplat_keep_the_pair_diagonal():
-    """`sh_via_color` and `drop_hidden` (the fisher defaults) on gsplat's kernels: same per-Gaussian diagonal."""
+    """`sh_via_color`, `drop_hidden` and `linearize` (the fisher defaults) on gsplat's kernels: same per-Gaussian
+    diagonal."""
     model = random_splat(n=3000, sh_degree=3)
     model.gauss_params["scales"] = model.gauss_params["scales"] + math.log(4.0)
     model.gauss_params["opacities"] = model.gauss_params["opacities"].abs() + 2.0
@@ -193,7 +229,8 @@ def test_fisher_shortcuts_on_gsplat_keep_the_pair_diagonal():
     selector = FisherSelectorConfig(mode="exact").setup()  # every pixel-channel: no probe noise between the two
     diag = []
     for fast in (False, True):
-        pr = render_pairs(model, viewmats, Ks, W, H, names, backend="gsplat", sh_via_color=fast, drop_hidden=fast)
+        pr = render_pairs(model, viewmats, Ks, W, H, names, backend="gsplat", sh_via_color=fast, drop_hidden=fast,
+                          linearize=fast)
         total = {n: torch.zeros_like(model.gauss_params[n]) for n in names}
         for n, sq in selector.pair_squares(pr, 1, torch.Generator(device="cuda")).items():
             total[n].index_add_(0, pr.gaussian_ids, sq)

@@ -34,7 +34,7 @@ import torch
 from nerfstudio.configs.base_config import InstantiateConfig
 
 from hpgs_ns.model import resolve_rasterizer
-from hpgs_ns.pair_render import SH_PARAMS, PairRender, render_pairs, sh_squared_gradients
+from hpgs_ns.pair_render import PairRender, render_pairs, sh_squared_gradients
 from hpgs_ns.selectors.base import Selection, SelectionContext, SelectionError, eval_mode
 from hpgs_ns.viewmats import world_to_camera
 
@@ -65,6 +65,10 @@ class FisherSelectorConfig(InstantiateConfig):
     sh_via_color: bool = True
     """Get the SH coefficients' squared gradients from each pair's colour gradient (exact: the colour is linear
     in them) instead of back-propagating into all 3 (degree + 1)^2 of them per probe."""
+    linearize: bool = True
+    """Back-propagate each probe through the rasterizer only and chain on with each pair's projection Jacobian
+    (taken once per batch of views): same gradients, the projection's autograd 9 times per batch instead of once
+    per probe. Implies `sh-via-color`."""
     drop_hidden: bool = True
     """Leave out (view, Gaussian) pairs composited into no pixel (occluded, or too faint everywhere): exactly
     zero gradient, so the same scores for one extra forward and backward per batch of views."""
@@ -128,7 +132,7 @@ class FisherSelector:
         with torch.enable_grad():
             pr = render_pairs(
                 context.model, batch.viewmats, batch.Ks, batch.width, batch.height, self.param_names(), backend,
-                sh_via_color=self.config.sh_via_color, drop_hidden=self.config.drop_hidden,
+                sh_via_color=self.config.sh_via_color, drop_hidden=self.config.drop_hidden, linearize=self.config.linearize,
             )
         full = context.cameras[torch.tensor(batch.views, dtype=torch.long)]
         self._count("views_rendered", len(batch.views))
@@ -145,43 +149,37 @@ class FisherSelector:
     def pair_squares(self, pr: PairRender, probes: int, generator: torch.Generator) -> Dict[str, torch.Tensor]:
         """Each pair's diag(J^T J) for every Fisher parameter, [nnz, ...] like its leaf: the probe mean of the
         squared pair gradients (in `exact` mode the sum over pixel-channels)."""
-        names = self.param_names()
-        via_color = pr.color_offset is not None  # SH coefficients through the colour gradient (pair_render)
-        direct = [n for n in names if not (via_color and n in SH_PARAMS)]
-        inputs = [pr.leaves[n] for n in direct] + ([pr.color_offset] if via_color else [])
-        sums = [torch.zeros_like(t, requires_grad=False) for t in inputs]
-        for grads, weight in self.pair_gradients(pr, inputs, probes, generator):
-            for total, g in zip(sums, grads):
-                if g is not None:
-                    total.add_(g.detach().square(), alpha=weight)
-        squares = dict(zip(direct, sums))
-        if via_color:
-            squares["features_dc"], squares["features_rest"] = sh_squared_gradients(
-                pr.sh_bases, sums[-1], pr.leaves["features_rest"].shape[1]
+        sums: Dict[str, torch.Tensor] = {}
+        for grad_image, weight, last in self.upstream_gradients(pr, probes, generator):
+            for name, g in pr.gradients(grad_image, retain_graph=not last).items():
+                if name in sums:
+                    sums[name].add_(g.square(), alpha=weight)
+                else:
+                    sums[name] = g.square().mul_(weight)
+        if "color" in sums:  # SH coefficients through the colour gradient (pair_render.sh_squared_gradients)
+            sums["features_dc"], sums["features_rest"] = sh_squared_gradients(
+                pr.sh_bases, sums.pop("color"), pr.leaves["features_rest"].shape[1]
             )
-        return squares
+        return {n: sums[n] if n in sums else torch.zeros_like(pr.leaves[n]) for n in self.param_names()}
 
-    def pair_gradients(
-        self, pr: PairRender, inputs: List[torch.Tensor], probes: int, generator: torch.Generator
-    ) -> Iterator[Tuple[Tuple[torch.Tensor, ...], float]]:
-        """(gradient of every pair w.r.t. `inputs`, weight) for each probe (or each pixel-channel in `exact`
-        mode): the weighted sum of the squared gradients over the yields is each view's diag(J^T J), pair by pair."""
+    def upstream_gradients(self, pr: PairRender, probes: int, generator: torch.Generator) -> Iterator[Tuple[torch.Tensor, float, bool]]:
+        """(upstream gradient of the image, weight, whether it is the last) for each probe (or each pixel-channel
+        in `exact` mode): the weighted sum of the squared pair gradients over them is each view's diag(J^T J)."""
         if pr.camera_ids.numel() == 0:
             return
         if self.config.mode == "exact":
-            flat = pr.image.reshape(pr.image.shape[0], -1)
-            for k in range(flat.shape[1]):
+            n = pr.image[0].numel()
+            for k in range(n):
                 # Pixel k of every view at once: the pairs keep the views' gradients apart.
-                grads = torch.autograd.grad(flat[:, k].sum(), inputs, retain_graph=k < flat.shape[1] - 1, allow_unused=True)
+                one_hot = torch.zeros_like(pr.image).reshape(pr.image.shape[0], -1)
+                one_hot[:, k] = 1.0
                 self._count("backward_passes", 1)
-                yield grads, 1.0
+                yield one_hot.reshape(pr.image.shape), 1.0, k == n - 1
             return
         for k in range(probes):
             eps = torch.randint(0, 2, pr.image.shape, generator=generator, device=pr.image.device, dtype=torch.int8)
-            eps = eps.to(pr.image.dtype).mul_(2).sub_(1)
-            grads = torch.autograd.grad(pr.image, inputs, grad_outputs=eps, retain_graph=k < probes - 1, allow_unused=True)
             self._count("backward_passes", 1)
-            yield grads, 1.0 / probes
+            yield eps.to(pr.image.dtype).mul_(2).sub_(1), 1.0 / probes, k == probes - 1
 
     # ---- the two quantities ----------------------------------------------------------------------------------
 
