@@ -86,7 +86,13 @@ def main() -> None:
             if torch.cuda.is_available():
                 torch.cuda.synchronize()
         sort = "self_cuda_time_total" if torch.cuda.is_available() else "self_cpu_time_total"
-        table = prof.key_averages().table(sort_by=sort, row_limit=40)
+        averages = prof.key_averages()
+        # The named ranges of pair_render and the fisher selector: where a round's time goes, stage by stage.
+        stages = [e for e in averages if e.key.startswith(("pair_render.", "fisher."))]
+        lines = [f"{e.key:28s} calls {e.count:5d}  CPU total {e.cpu_time_total / 1e3:9.1f} ms  "
+                 f"device total {getattr(e, 'device_time_total', getattr(e, 'cuda_time_total', 0)) / 1e3:9.1f} ms"
+                 for e in sorted(stages, key=lambda e: e.key)]
+        table = "\n".join(lines) + "\n\n" + averages.table(sort_by=sort, row_limit=40)
         args.profile.write_text(table)
         print(table, flush=True)
     ref = scores(args.reference, 12345, scale=args.reference_scale or default.resolution_scale)

@@ -28,6 +28,7 @@ from typing import Dict, List, Sequence, Tuple
 
 import torch
 from torch import Tensor
+from torch.profiler import record_function  # named ranges in benchmarks/fisher_probes.py --profile
 
 from hpgs_ns.cpu_raster import _project, _quat_scale_to_covar, _sh_bases, _sh_to_color
 
@@ -146,12 +147,14 @@ def render_pairs(
     C = viewmats.shape[0]
     with torch.no_grad():
         covars = _quat_scale_to_covar(params["quats"], torch.exp(params["scales"]))
-    cids, gids, radii = visible_pairs(params["means"], covars, viewmats, Ks, width, height)
+    with record_function("pair_render.cull"):
+        cids, gids, radii = visible_pairs(params["means"], covars, viewmats, Ks, width, height)
     in_frustum = int(cids.numel())
     rasterize = _rasterize_gsplat if backend == "gsplat" else _rasterize_cpu
     backgrounds = model.background_color.to(viewmats).expand(C, 3).contiguous()
     if drop_hidden and in_frustum:
-        keep = composited(model, params, cids, gids, radii, viewmats, Ks, width, height, rasterize, backgrounds)
+        with record_function("pair_render.drop_hidden"):
+            keep = composited(model, params, cids, gids, radii, viewmats, Ks, width, height, rasterize, backgrounds)
         cids, gids, radii = cids[keep], gids[keep], radii[keep]
     degree = active_sh_degree(model)
     via_color = (sh_via_color or linearize) and degree is not None
@@ -207,7 +210,7 @@ def _render_linearized(model, params, cids, gids, radii, viewmats, Ks, width, he
     eye = torch.eye(9, dtype=jac.dtype, device=jac.device)
     for start in range(0, gids.shape[0], JACOBIAN_PAIRS_PER_CHUNK):
         rows = slice(start, start + JACOBIAN_PAIRS_PER_CHUNK)
-        with torch.enable_grad():
+        with torch.enable_grad(), record_function("pair_render.jacobian"):
             p = {n: t[rows].requires_grad_(n in theta) for n, t in leaves.items()}
             proj, opacities = project_pairs(model, p, cids[rows], viewmats, Ks, width, height)
             colors = torch.clamp_min(pair_colors(model, p, cids[rows], viewmats, degree), 0.0)
@@ -230,8 +233,9 @@ def _render_linearized(model, params, cids, gids, radii, viewmats, Ks, width, he
             mask = (pair_colors(model, leaves, cids, viewmats, degree) > 0).to(jac.dtype)
     raster = [t.requires_grad_() for t in raster]
     means2d, conics, opacities, colors = raster
-    image, _ = rasterize(means2d, conics, colors, opacities[:, 0], radii, depths, cids, gids, viewmats.shape[0], width,
-                         height, backgrounds)
+    with record_function("pair_render.rasterize"):
+        image, _ = rasterize(means2d, conics, colors, opacities[:, 0], radii, depths, cids, gids, viewmats.shape[0],
+                             width, height, backgrounds)
     return PairRender(
         image=image, leaves=leaves, camera_ids=cids, gaussian_ids=gids, sh_bases=bases, pairs_in_frustum=in_frustum,
         raster_inputs=raster, jacobian=jac, jacobian_params=theta, color_mask=mask,

@@ -31,6 +31,7 @@ from dataclasses import dataclass, field
 from typing import Dict, Iterator, List, Literal, Sequence, Tuple, Type
 
 import torch
+from torch.profiler import record_function
 from nerfstudio.configs.base_config import InstantiateConfig
 
 from hpgs_ns.model import resolve_rasterizer
@@ -151,7 +152,9 @@ class FisherSelector:
         squared pair gradients (in `exact` mode the sum over pixel-channels)."""
         sums: Dict[str, torch.Tensor] = {}
         for grad_image, weight, last in self.upstream_gradients(pr, probes, generator):
-            for name, g in pr.gradients(grad_image, retain_graph=not last).items():
+            with record_function("fisher.probe_backward"):
+                grads = pr.gradients(grad_image, retain_graph=not last)
+            for name, g in grads.items():
                 if name in sums:
                     sums[name].add_(g.square(), alpha=weight)
                 else:
