@@ -113,18 +113,12 @@ class _SqrtCompensation(torch.autograd.Function):
     def forward(ctx, x: Tensor) -> Tensor:
         y = x.clamp_min(0).sqrt()
         ctx.save_for_backward(y)
-        ctx.save_for_forward(y)
         return y
 
     @staticmethod
     def backward(ctx, g: Tensor) -> Tensor:
         (y,) = ctx.saved_tensors
         return g * 0.5 / (y + 1e-6)
-
-    @staticmethod
-    def jvp(ctx, t: Tensor) -> Tensor:  # forward mode (pair_render's projection Jacobians), same derivative
-        (y,) = ctx.saved_tensors
-        return t * 0.5 / (y + 1e-6)
 
 
 def _project(

@@ -27,7 +27,6 @@ from dataclasses import dataclass, field
 from typing import Dict, List, Sequence, Tuple
 
 import torch
-import torch.autograd.forward_ad as fwAD
 from torch import Tensor
 from torch.profiler import record_function  # named ranges in benchmarks/fisher_probes.py --profile
 
@@ -198,14 +197,6 @@ def pair_sh_bases(p: Dict[str, Tensor], cids: Tensor, viewmats: Tensor, degree: 
     return _sh_bases(degree, p["means"] - campos[cids])
 
 
-def raster_inputs(model, p: Dict[str, Tensor], cids: Tensor, viewmats: Tensor, Ks: Tensor, width: int, height: int,
-                  degree: int | None) -> Tuple[Tensor, Tensor]:
-    """([nnz, 9] what the rasterizer reads per pair, laid out as RASTER_INPUTS; [nnz] depths) from raw parameters."""
-    proj, opacities = project_pairs(model, p, cids, viewmats, Ks, width, height)
-    colors = torch.clamp_min(pair_colors(model, p, cids, viewmats, degree), 0.0)
-    return torch.cat((proj["means2d"], proj["conics"], opacities[:, None], colors), 1), proj["depths"]
-
-
 def _render_linearized(model, params, cids, gids, radii, viewmats, Ks, width, height, grad_params, degree, rasterize,
                        backgrounds, in_frustum) -> PairRender:
     """`render_pairs(linearize=True)`: the rasterizer's inputs as leaves, plus each pair's projection Jacobian."""
@@ -216,28 +207,25 @@ def _render_linearized(model, params, cids, gids, radii, viewmats, Ks, width, he
     depths = torch.empty(gids.shape[0], dtype=leaves["means"].dtype, device=leaves["means"].device)
     P = sum(leaves[n].shape[1:].numel() for n in theta)
     jac = leaves["means"].new_zeros(gids.shape[0], 9, P)
+    eye = torch.eye(9, dtype=jac.dtype, device=jac.device)
     for start in range(0, gids.shape[0], JACOBIAN_PAIRS_PER_CHUNK):
         rows = slice(start, start + JACOBIAN_PAIRS_PER_CHUNK)
-        p = {n: t[rows] for n, t in leaves.items()}
-        with torch.no_grad(), record_function("pair_render.jacobian"):
-            y, depths[rows] = raster_inputs(model, p, cids[rows], viewmats, Ks, width, height, degree)
-            # Forward mode, one raw-parameter coordinate at a time for all pairs at once (the pairs are
-            # independent): P <= 11 passes that each follow only what that parameter reaches (an opacity tangent
-            # skips the projection). Reverse mode needed 9 rows through the whole graph, at twice the time.
-            col = 0
-            for name in theta:
-                flat = p[name].reshape(p[name].shape[0], -1)
-                for j in range(flat.shape[1]):
-                    tangent = torch.zeros_like(flat)
-                    tangent[:, j] = 1.0
-                    with fwAD.dual_level():
-                        q = dict(p, **{name: fwAD.make_dual(p[name], tangent.reshape(p[name].shape))})
-                        t = fwAD.unpack_dual(raster_inputs(model, q, cids[rows], viewmats, Ks, width, height, degree)[0]).tangent
-                    if t is not None:
-                        jac[rows, :, col] = t
-                    col += 1
-        for leaf, part in zip(raster, y.split([w for _, w in RASTER_INPUTS], 1)):
-            leaf[rows] = part
+        with torch.enable_grad(), record_function("pair_render.jacobian"):
+            p = {n: t[rows].requires_grad_(n in theta) for n, t in leaves.items()}
+            proj, opacities = project_pairs(model, p, cids[rows], viewmats, Ks, width, height)
+            colors = torch.clamp_min(pair_colors(model, p, cids[rows], viewmats, degree), 0.0)
+            y = torch.cat((proj["means2d"], proj["conics"], opacities[:, None], colors), 1)
+            if theta:
+                # Row k of every pair's Jacobian at once (the pairs are independent): 9 batched backward passes.
+                rows_k = eye[:, None, :].expand(9, y.shape[0], 9)
+                grads = torch.autograd.grad(y, [p[n] for n in theta], rows_k, is_grads_batched=True, allow_unused=True)
+                cols = [torch.zeros(9, y.shape[0], p[n][0].numel(), dtype=y.dtype, device=y.device) if g is None
+                        else g.reshape(9, y.shape[0], -1) for n, g in zip(theta, grads)]
+                jac[rows] = torch.cat(cols, 2).permute(1, 0, 2)
+        y = y.detach()
+        for t, part in zip(raster, y.split([w for _, w in RASTER_INPUTS], 1)):
+            t[rows] = part
+        depths[rows] = proj["depths"].detach()
     bases = mask = None
     if degree is not None:
         bases = pair_sh_bases(leaves, cids, viewmats, degree)
