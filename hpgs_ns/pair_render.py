@@ -12,7 +12,7 @@ every view's own gradient, for a whole batch of views at once.
 
 With `linearize` the probes stop at the rasterizer: each pair's projected inputs (means2d, conics, opacity, colour)
 become the leaves, the Jacobian of those 9 numbers w.r.t. the pair's raw parameters is computed once per batch
-(9 batched backward passes of the projection), and each probe's gradient is the rasterizer's backward followed by
+(batched backward passes: 6 rows through the projection, 3 through the SH colour), and each probe's gradient is the rasterizer's backward followed by
 one [9 x P] product per pair. The projection's autograd (two thirds of a Fisher round's GPU time at step 14000,
 benchmarks/results/gpu/fisher_profile_bonsai_step14000_h100.txt) then runs 9 times per batch instead of once per
 probe.
@@ -205,26 +205,29 @@ def _render_linearized(model, params, cids, gids, radii, viewmats, Ks, width, he
     leaves = {n: t[gids] for n, t in params.items()}
     raster = [torch.empty(gids.shape[0], w, dtype=leaves["means"].dtype, device=leaves["means"].device) for _, w in RASTER_INPUTS]
     depths = torch.empty(gids.shape[0], dtype=leaves["means"].dtype, device=leaves["means"].device)
-    P = sum(leaves[n].shape[1:].numel() for n in theta)
-    jac = leaves["means"].new_zeros(gids.shape[0], 9, P)
-    eye = torch.eye(9, dtype=jac.dtype, device=jac.device)
+    widths = [leaves[n].shape[1:].numel() for n in theta]
+    offsets = [sum(widths[:k]) for k in range(len(theta))]
+    jac = leaves["means"].new_zeros(gids.shape[0], 9, sum(widths))
     for start in range(0, gids.shape[0], JACOBIAN_PAIRS_PER_CHUNK):
         rows = slice(start, start + JACOBIAN_PAIRS_PER_CHUNK)
         with torch.enable_grad(), record_function("pair_render.jacobian"):
             p = {n: t[rows].requires_grad_(n in theta) for n, t in leaves.items()}
             proj, opacities = project_pairs(model, p, cids[rows], viewmats, Ks, width, height)
             colors = torch.clamp_min(pair_colors(model, p, cids[rows], viewmats, degree), 0.0)
-            y = torch.cat((proj["means2d"], proj["conics"], opacities[:, None], colors), 1)
-            if theta:
-                # Row k of every pair's Jacobian at once (the pairs are independent): 9 batched backward passes.
-                rows_k = eye[:, None, :].expand(9, y.shape[0], 9)
-                grads = torch.autograd.grad(y, [p[n] for n in theta], rows_k, is_grads_batched=True, allow_unused=True)
-                cols = [torch.zeros(9, y.shape[0], p[n][0].numel(), dtype=y.dtype, device=y.device) if g is None
-                        else g.reshape(9, y.shape[0], -1) for n, g in zip(theta, grads)]
-                jac[rows] = torch.cat(cols, 2).permute(1, 0, 2)
-        y = y.detach()
-        for t, part in zip(raster, y.split([w for _, w in RASTER_INPUTS], 1)):
-            t[rows] = part
+            # Rows of every pair's Jacobian at once (the pairs are independent), by batched backward passes: the
+            # 6 geometric rows through the projection, the 3 colour rows through the SH only (a single 9-row pass
+            # would carry every row through both graphs).
+            for first, y in ((0, torch.cat((proj["means2d"], proj["conics"], opacities[:, None]), 1)), (6, colors)):
+                if not theta or not y.requires_grad:
+                    continue
+                k = y.shape[1]
+                eye = torch.eye(k, dtype=y.dtype, device=y.device)[:, None, :].expand(k, y.shape[0], k)
+                grads = torch.autograd.grad(y, [p[n] for n in theta], eye, is_grads_batched=True, allow_unused=True)
+                for g, w, o in zip(grads, widths, offsets):
+                    if g is not None:
+                        jac[rows, first : first + k, o : o + w] = g.reshape(k, y.shape[0], w).transpose(0, 1)
+        for leaf, part in zip(raster, (proj["means2d"], proj["conics"], opacities[:, None], colors)):
+            leaf[rows] = part.detach()
         depths[rows] = proj["depths"].detach()
     bases = mask = None
     if degree is not None:
