@@ -14,7 +14,7 @@ With `linearize` the probes stop at the rasterizer: each pair's projected inputs
 become the leaves, the Jacobian of those 9 numbers w.r.t. the pair's raw parameters is computed once per batch
 (batched backward passes: 6 rows through the projection, 3 through the SH colour), and each probe's gradient is the rasterizer's backward followed by
 one [9 x P] product per pair. The projection's autograd (two thirds of a Fisher round's GPU time at step 14000,
-benchmarks/results/gpu/fisher_profile_bonsai_step14000_h100.txt) then runs 9 times per batch instead of once per
+benchmarks/results/gpu/fisher_profile_bonsai_step14000_h100.txt) then runs for 6 + 3 rows per batch instead of once per
 probe.
 
 No library offers per-view gradients of a batched render (gsplat's batched API shares the 3D parameters), which

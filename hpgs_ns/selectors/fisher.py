@@ -68,7 +68,7 @@ class FisherSelectorConfig(InstantiateConfig):
     in them) instead of back-propagating into all 3 (degree + 1)^2 of them per probe."""
     linearize: bool = True
     """Back-propagate each probe through the rasterizer only and chain on with each pair's projection Jacobian
-    (taken once per batch of views): same gradients, the projection's autograd 9 times per batch instead of once
+    (taken once per batch of views): same gradients, the projection's autograd for 6 + 3 rows per batch instead of once
     per probe. Implies `sh-via-color`."""
     drop_hidden: bool = True
     """Leave out (view, Gaussian) pairs composited into no pixel (occluded, or too faint everywhere): exactly
