@@ -10,12 +10,12 @@ in PyTorch (`cpu_raster._project`: gsplat's EWA maths), and composited by gsplat
 (CUDA) or its pure-PyTorch twin `cpu_raster.rasterize_pairs`. One backward pass then gives every pair's gradient:
 every view's own gradient, for a whole batch of views at once.
 
-With `linearize` the probes stop at the rasterizer: each pair's projected inputs (means2d, conics, opacity, colour)
-become the leaves, the Jacobian of those 9 numbers w.r.t. the pair's raw parameters is computed once per batch
-(batched backward passes: 6 rows through the projection, 3 through the SH colour), and each probe's gradient is the rasterizer's backward followed by
-one [9 x P] product per pair. The projection's autograd (two thirds of a Fisher round's GPU time at step 14000,
-benchmarks/results/gpu/fisher_profile_bonsai_step14000_h100.txt) then runs for 6 + 3 rows per batch instead of once per
-probe.
+With `linearize` the probes stop at the rasterizer: each pair's projected inputs (means2d, conics, opacity,
+colour) become the leaves, the Jacobian of those 9 numbers w.r.t. the pair's raw parameters is taken once per
+batch (batched backward passes: 6 rows through the projection, 3 through the SH colour), and each probe's
+gradient is the rasterizer's backward followed by one [9 x P] product per pair. The projection's autograd was two
+thirds of a Fisher round's GPU time when it ran once per probe
+(benchmarks/results/gpu/fisher_profile_bonsai_step14000_h100.txt).
 
 No library offers per-view gradients of a batched render (gsplat's batched API shares the 3D parameters), which
 is why this is written here.
@@ -37,7 +37,7 @@ NEAR_PLANE = 0.01  # splatfacto's near plane
 EPS2D = 0.3  # gsplat's default low-pass (splatfacto keeps it)
 TILE_SIZE = 16
 PAIRS_PER_CHUNK = 1 << 22  # (camera, Gaussian) pairs tested at once when culling (bounds memory, not results)
-JACOBIAN_PAIRS_PER_CHUNK = 1 << 20  # pairs whose projection Jacobian is taken at once (9 copies of its graph)
+JACOBIAN_PAIRS_PER_CHUNK = 1 << 20  # pairs whose projection Jacobian is taken at once (6 batched copies of its graph)
 RASTER_INPUTS = (("means2d", 2), ("conics", 3), ("opacities", 1), ("colors", 3))  # what the rasterizer reads per pair
 
 

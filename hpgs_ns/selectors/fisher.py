@@ -21,7 +21,8 @@ copy of the parameters, so one backward pass per probe gives every view of the b
 the Gaussians whose footprint reaches a view are gathered for it (frustum culling). H_train is recomputed every
 round because densification renumbers the Gaussians. The colour is linear in the SH coefficients, so their
 squared gradients come from each pair's colour gradient d as B_k^2 d^2 (`sh_via_color`) rather than from 48
-back-propagated numbers per pair and probe.
+back-propagated numbers per pair and probe; with `linearize` a probe back-propagates through the rasterizer only,
+and each pair's projection Jacobian (taken once per batch) carries its gradient on to the raw parameters.
 """
 
 from __future__ import annotations
@@ -31,8 +32,8 @@ from dataclasses import dataclass, field
 from typing import Dict, Iterator, List, Literal, Sequence, Tuple, Type
 
 import torch
-from torch.profiler import record_function
 from nerfstudio.configs.base_config import InstantiateConfig
+from torch.profiler import record_function
 
 from hpgs_ns.model import resolve_rasterizer
 from hpgs_ns.pair_render import PairRender, render_pairs, sh_squared_gradients
@@ -68,8 +69,8 @@ class FisherSelectorConfig(InstantiateConfig):
     in them) instead of back-propagating into all 3 (degree + 1)^2 of them per probe."""
     linearize: bool = True
     """Back-propagate each probe through the rasterizer only and chain on with each pair's projection Jacobian
-    (taken once per batch of views): same gradients, the projection's autograd for 6 + 3 rows per batch instead of once
-    per probe. Implies `sh-via-color`."""
+    (taken once per batch of views): same gradients, the projection's autograd once per batch instead of once per
+    probe. Implies `sh-via-color`."""
     drop_hidden: bool = True
     """Leave out (view, Gaussian) pairs composited into no pixel (occluded, or too faint everywhere): exactly
     zero gradient, so the same scores for one extra forward and backward per batch of views."""
