@@ -64,6 +64,7 @@ def main() -> None:
     view_batches = args.view_batch or [default.view_batch]
     res_scales = args.resolution_scale or [default.resolution_scale]
     factors = args.train_probe_factor or [default.train_probe_factor]
+    ref_scale = args.reference_scale or default.resolution_scale
 
     def scores(k: int, seed: int, view_batch: int = view_batches[0], scale: float = default.resolution_scale,
                factor: int = default.train_probe_factor) -> Dict[int, float]:
@@ -95,7 +96,7 @@ def main() -> None:
         table = "\n".join(lines) + "\n\n" + averages.table(sort_by=sort, row_limit=40)
         args.profile.write_text(table)
         print(table, flush=True)
-    ref = scores(args.reference, 12345, scale=args.reference_scale or default.resolution_scale)
+    ref = scores(args.reference, 12345, scale=ref_scale)
     order = sorted(ref)
     ref_list = [ref[c] for c in order]
     best = max(ref, key=ref.get)
@@ -122,7 +123,7 @@ def main() -> None:
     write_json_atomic(args.out, {
         "run": str(args.run), "step": step, "gaussians": int(model.num_points), "candidates": len(ref),
         "active": len(dm.active), "reference_probes": args.reference,
-        "reference_scale": args.reference_scale or default.resolution_scale, "first_call_seconds": first_call, "device": device, "rows": rows,
+        "reference_scale": ref_scale, "first_call_seconds": first_call, "device": device, "rows": rows,
     })
 
 

@@ -208,12 +208,14 @@ def _render_linearized(model, params, cids, gids, radii, viewmats, Ks, width, he
     widths = [leaves[n].shape[1:].numel() for n in theta]
     offsets = [sum(widths[:k]) for k in range(len(theta))]
     jac = leaves["means"].new_zeros(gids.shape[0], 9, sum(widths))
+    mask = torch.empty(gids.shape[0], 3, dtype=jac.dtype, device=jac.device) if degree is not None else None
     for start in range(0, gids.shape[0], JACOBIAN_PAIRS_PER_CHUNK):
         rows = slice(start, start + JACOBIAN_PAIRS_PER_CHUNK)
         with torch.enable_grad(), record_function("pair_render.jacobian"):
             p = {n: t[rows].requires_grad_(n in theta) for n, t in leaves.items()}
             proj, opacities = project_pairs(model, p, cids[rows], viewmats, Ks, width, height)
-            colors = torch.clamp_min(pair_colors(model, p, cids[rows], viewmats, degree), 0.0)
+            unclamped = pair_colors(model, p, cids[rows], viewmats, degree)
+            colors = torch.clamp_min(unclamped, 0.0)
             # Rows of every pair's Jacobian at once (the pairs are independent), by batched backward passes: the
             # 6 geometric rows through the projection, the 3 colour rows through the SH only (a single 9-row pass
             # would carry every row through both graphs).
@@ -229,11 +231,9 @@ def _render_linearized(model, params, cids, gids, radii, viewmats, Ks, width, he
         for leaf, part in zip(raster, (proj["means2d"], proj["conics"], opacities[:, None], colors)):
             leaf[rows] = part.detach()
         depths[rows] = proj["depths"].detach()
-    bases = mask = None
-    if degree is not None:
-        bases = pair_sh_bases(leaves, cids, viewmats, degree)
-        with torch.no_grad():
-            mask = (pair_colors(model, leaves, cids, viewmats, degree) > 0).to(jac.dtype)
+        if mask is not None:
+            mask[rows] = unclamped.detach() > 0
+    bases = pair_sh_bases(leaves, cids, viewmats, degree) if degree is not None else None
     raster = [t.requires_grad_() for t in raster]
     means2d, conics, opacities, colors = raster
     with record_function("pair_render.rasterize"):
