@@ -382,8 +382,8 @@ def markdown_table(rows: List[dict]) -> str:
     for r in rows:
         groups.setdefault((r["scene"], r["protocol"], r["selector"]), []).append(r)
     lines = [
-        "| scene | protocol | selector | seeds | views | PSNR | SSIM | LPIPS | wall (s) | selection (s) |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| scene | protocol | selector | seeds | views | PSNR | SSIM | LPIPS | devices | wall (s) | selection (s) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     order = {name: i for i, name in enumerate(list(SELECTORS) + list(REFERENCES))}
     for (scene, protocol, sel), group in sorted(groups.items(), key=lambda kv: (kv[0][0], kv[0][1], order.get(kv[0][2], 99))):
@@ -394,8 +394,20 @@ def markdown_table(rows: List[dict]) -> str:
         wall, _ = _mean_std([g["wall_seconds"] for g in group])
         selt, _ = _mean_std([g["selection_seconds"] for g in group])
         views = group[0]["num_views_final"]
-        lines.append(f"| {scene} | {protocol} | {sel} | {len(group)} | {views} | {' | '.join(cells)} | {wall:.0f} | {selt:.1f} |")
+        devices = device_counts(group)
+        lines.append(
+            f"| {scene} | {protocol} | {sel} | {len(group)} | {views} | {' | '.join(cells)} | {devices} | {wall:.0f} | {selt:.1f} |"
+        )
     return "\n".join(lines) + "\n"
+
+
+def device_counts(group: List[dict]) -> str:
+    """`H100 x2, H200`: wall times are only comparable on one device, and sweeps span sessions and machines."""
+    counts: Dict[str, int] = {}
+    for g in group:
+        short = str(g.get("device", "?")).replace("NVIDIA ", "").split()[0]
+        counts[short] = counts.get(short, 0) + 1
+    return ", ".join(name if n == 1 else f"{name} x{n}" for name, n in sorted(counts.items()))
 
 
 def make_plots(rows: List[dict], out: Path) -> List[Path]:
@@ -410,19 +422,28 @@ def make_plots(rows: List[dict], out: Path) -> List[Path]:
     for scene, protocol in keys:
         group = [r for r in rows if r["scene"] == scene and r["protocol"] == protocol]
         fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4.2))
-        for sel in sorted({r["selector"] for r in group}):
+        # One marker per device: run times are only comparable on one device.
+        markers = dict(zip(sorted({device_counts([r]) for r in group}), "o^sDvP"))
+        for i, sel in enumerate(sorted({r["selector"] for r in group})):
             rs = [r for r in group if r["selector"] == sel]
-            ax1.scatter([r["wall_seconds"] for r in rs], [r["test"]["psnr"] for r in rs], label=sel, s=30)
+            for n, r in enumerate(rs):
+                ax1.scatter(r["wall_seconds"], r["test"]["psnr"], s=30, color=f"C{i}",
+                            marker=markers[device_counts([r])], label=sel if n == 0 else None)
             if sel in REFERENCES:
                 continue
             for k, r in enumerate(rs):
                 pts = [(p["num_views_before"], p["test_psnr"]) for p in r["psnr_per_round"] if p["test_psnr"] is not None]
                 pts.append((r["num_views_final"], r["test"]["psnr"]))
-                ax2.plot(*zip(*pts), marker="o", ms=3, color=f"C{sorted({x['selector'] for x in group}).index(sel)}",
+                ax2.plot(*zip(*pts), marker="o", ms=3, color=f"C{i}",
                          label=sel if k == 0 else None, alpha=0.8)
         ax1.set(xlabel="wall time (s)", ylabel="test PSNR (dB)", title=f"{scene} / {protocol}: PSNR vs run time")
         ax2.set(xlabel="training views", ylabel="test PSNR (dB)", title="PSNR as views are added")
-        ax1.legend(fontsize=8)
+        handles, labels = ax1.get_legend_handles_labels()
+        if len(markers) > 1:
+            for device, marker in markers.items():
+                handles.append(ax1.scatter([], [], marker=marker, color="grey", s=30))
+                labels.append(device)
+        ax1.legend(handles, labels, fontsize=8)
         ax2.legend(fontsize=8)
         fig.tight_layout()
         path = out / f"{scene}-{protocol}.png"
@@ -474,13 +495,15 @@ def camera_map(group: List[dict], path: Path) -> Optional[Path]:
     for ax, (sel, r) in zip(axes[0], sorted(first.items())):
         ax.scatter(*zip(*all_xy), s=6, c="lightgrey", label="withheld / test")
         ax.scatter(*zip(*[pos[n] for n in r["initial_views"] if n in pos]), s=12, c="C0", label="initial")
-        for k, name in enumerate(r["chosen_views"], 1):
-            if name in pos:
-                ax.scatter(*pos[name], s=30, c="C3")
-                ax.annotate(str(k), pos[name], fontsize=8, xytext=(3, 3), textcoords="offset points")
+        chosen = [(k, pos[name]) for k, name in enumerate(r["chosen_views"], 1) if name in pos]
+        if chosen:
+            ax.scatter(*zip(*[xy for _, xy in chosen]), s=30, c="C3", label="added (in order)")
+        for k, xy in chosen:
+            ax.annotate(str(k), xy, fontsize=8, xytext=(3, 3), textcoords="offset points")
         ax.set(title=f"{sel} (seed {r['seed']})", xticks=[], yticks=[], aspect="equal")
-    axes[0][0].legend(fontsize=7, loc="lower left")
-    fig.tight_layout()
+    # Below the panels: inside one it would hide cameras.
+    fig.legend(*axes[0][0].get_legend_handles_labels(), loc="lower center", ncol=3, fontsize=8, frameon=False)
+    fig.tight_layout(rect=(0, 0.07, 1, 1))
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path

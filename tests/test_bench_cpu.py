@@ -7,7 +7,7 @@ import math
 
 import pytest
 
-from hpgs_ns.bench import Bench, fisherrf_schedule, load_results, markdown_table, resolve_scenes, summed_work, work_table
+from hpgs_ns.bench import Bench, device_counts, fisherrf_schedule, load_results, markdown_table, resolve_scenes, summed_work, work_table
 
 KEYS = {
     "scene", "protocol", "selector", "seed", "steps", "test", "psnr_per_round", "wall_seconds", "selection_seconds",
@@ -41,7 +41,7 @@ def test_tiny_bench_writes_results_table_plots_and_resumes(tiny_scene, tmp_path)
     assert [p["num_views_before"] for p in by["farthest"]["psnr_per_round"]] == list(range(6, 13))
     assert set(by["farthest"]["chosen_views"]).isdisjoint(by["farthest"]["initial_views"])
     table = (bench.out / "table.md").read_text()
-    assert table == markdown_table(rows) and "| farthest |" in table
+    assert table == markdown_table(rows) and "| farthest |" in table and "| cpu |" in table
     assert (bench.out / f"{tiny_scene.name}-hpgs.png").stat().st_size > 10_000
     assert (bench.out / f"{tiny_scene.name}-hpgs-cameras.png").stat().st_size > 10_000
 
@@ -61,6 +61,12 @@ def test_work_table_shows_what_selection_skipped():
     table = work_table([row, {**row, "selector": "random", "selection_work": {}}])
     assert "| s | hpgs | fisher | 20 | 25% | 25% | 16 | 0 | 1.5 |" in table
     assert "random" not in table  # selectors that compute nothing have no row
+
+
+def test_table_names_the_devices_behind_each_row():
+    rows = [{"device": "NVIDIA H100 80GB HBM3"}, {"device": "NVIDIA H200"}, {"device": "NVIDIA H100 80GB HBM3"}]
+    assert device_counts(rows) == "H100 x2, H200"
+    assert device_counts([{"device": "cpu x2"}]) == "cpu"
 
 
 def test_synthetic_scenes_are_generated_once_by_name(tmp_path, tiny_scene):
