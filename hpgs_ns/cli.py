@@ -30,6 +30,9 @@ def _load(spec: str):
 
 def entrypoint() -> None:
     """Run one `hpgs` subcommand."""
+    from hpgs_ns.errors import install_excepthook
+
+    install_excepthook()  # fixable failures print as one line
     argv = sys.argv[1:]
     # Build only the chosen subcommand's parser: importing every command (torch, nerfstudio) for --help is slow.
     if argv and argv[0] in COMMANDS:

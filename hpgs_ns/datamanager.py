@@ -31,6 +31,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 
 from hpgs_ns.atomic_write import write_json_atomic
 from hpgs_ns.dataparser import MipNerf360DataParserConfig
+from hpgs_ns.errors import UserError
 from hpgs_ns.selectors import (
     CondorcetSelectorConfig,
     FarthestSelectorConfig,
@@ -47,7 +48,7 @@ from hpgs_ns.selectors.base import eval_mode
 SelectorName = Literal["random", "farthest", "fisher", "hpgs", "condorcet"]
 
 
-class ActiveViewError(RuntimeError):
+class ActiveViewError(UserError, RuntimeError):
     """The active/withheld split cannot be set up or restored."""
 
 
@@ -159,22 +160,37 @@ class ActiveDatamanager(FullImageDatamanager):
 
     def _keep_points_seen_by_initial_views(self, min_views: int = 2) -> None:
         """Filter the dataparser's seed points in place (the pipeline hands them to the model after this)."""
+        # nerfstudio's own COLMAP reader, as its dataparser used: the mask then lines up with its point order.
         from nerfstudio.data.utils import colmap_parsing_utils as colmap_utils
 
         meta = self.train_dataparser_outputs.metadata
         if "points3D_xyz" not in meta:
             return
         model_dir = Path(self.config.dataparser.data) / self.config.dataparser.colmap_path
-        read = colmap_utils.read_images_binary if (model_dir / "images.bin").exists() else colmap_utils.read_images_text
-        read_pts = (
-            colmap_utils.read_points3D_binary if (model_dir / "points3D.bin").exists() else colmap_utils.read_points3D_text
-        )
-        name_to_id = {im.name: im_id for im_id, im in read(model_dir / ("images.bin" if read is colmap_utils.read_images_binary else "images.txt")).items()}
-        initial_ids = {name_to_id[self.image_names[i]] for i in self.active}
-        points = read_pts(model_dir / ("points3D.bin" if read_pts is colmap_utils.read_points3D_binary else "points3D.txt"))
-        keep = torch.tensor([len(initial_ids.intersection(p.image_ids.tolist())) >= min_views for p in points.values()])
+        if (model_dir / "images.bin").exists():
+            images = colmap_utils.read_images_binary(model_dir / "images.bin")
+        else:
+            images = colmap_utils.read_images_text(model_dir / "images.txt")
+        if (model_dir / "points3D.bin").exists():
+            points = colmap_utils.read_points3D_binary(model_dir / "points3D.bin")
+        else:
+            points = colmap_utils.read_points3D_text(model_dir / "points3D.txt")
+        name_to_id = {im.name: im_id for im_id, im in images.items()}
+        initial_ids = {name_to_id[self.image_names[i]] for i in self.active if self.image_names[i] in name_to_id}
+        tracks = [set(p.image_ids.tolist()) for p in points.values()]
+        if not any(tracks):
+            raise ActiveViewError(
+                f"{model_dir}/points3D has no point tracks (which images see each point), which strict-init needs; "
+                "use the full COLMAP model or drop --pipeline.datamanager.strict-init"
+            )
+        keep = torch.tensor([len(initial_ids & track) >= min_views for track in tracks])
         if keep.numel() != meta["points3D_xyz"].shape[0]:
             raise ActiveViewError("seed points and COLMAP tracks disagree; re-run without --pipeline.datamanager.strict-init")
+        if not keep.any():
+            raise ActiveViewError(
+                f"strict-init kept no seed point: none of {model_dir}/points3D is seen by {min_views} of the "
+                f"{len(self.active)} initial views; use more initial views or drop --pipeline.datamanager.strict-init"
+            )
         for key in [k for k, v in meta.items() if k.startswith("points3D_") and torch.is_tensor(v) and v.shape[:1] == keep.shape]:
             meta[key] = meta[key][keep]
         CONSOLE.print(f"strict init: kept {int(keep.sum())} of {keep.numel()} seed points seen by >= {min_views} initial views")

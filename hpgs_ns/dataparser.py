@@ -22,10 +22,12 @@ from nerfstudio.data.dataparsers.colmap_dataparser import ColmapDataParser, Colm
 from nerfstudio.utils.rich_utils import CONSOLE
 from PIL import Image
 
+from hpgs_ns.errors import UserError
+
 MAX_AUTO_RESOLUTION = 1600  # nerfstudio's rule for the automatic downscale factor
 
 
-class SceneDataError(ValueError):
+class SceneDataError(UserError, ValueError):
     """The scene folder is missing something the parser needs."""
 
 

@@ -14,10 +14,14 @@ from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 from nerfstudio.plugins.types import MethodSpecification
 
 from hpgs_ns.datamanager import ActiveDatamanagerConfig
+from hpgs_ns.errors import install_excepthook
 from hpgs_ns.model import HpgsSplatfactoModelConfig
 from hpgs_ns.trainer import FloatExponentialDecaySchedulerConfig, HpgsTrainerConfig
 
 TOTAL_STEPS = 15000
+
+# nerfstudio imports this module for ns-train/ns-eval/ns-viewer: our fixable errors print as one line there.
+install_excepthook()
 
 
 def hpgs_trainer_config(max_steps: int = TOTAL_STEPS) -> HpgsTrainerConfig:

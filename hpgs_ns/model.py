@@ -25,10 +25,11 @@ from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.models import splatfacto
 from nerfstudio.models.splatfacto import SplatfactoModel, SplatfactoModelConfig
 
+from hpgs_ns.errors import UserError
 from hpgs_ns.viewmats import world_to_camera
 
 
-class RasterizerUnavailableError(RuntimeError):
+class RasterizerUnavailableError(UserError, RuntimeError):
     """The requested rasterizer cannot run on this machine."""
 
 

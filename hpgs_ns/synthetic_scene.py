@@ -45,6 +45,8 @@ from typing import Dict, List, Literal, Optional, Sequence, Tuple
 
 import numpy as np
 
+from hpgs_ns.errors import UserError
+
 LAYOUTS = ("ring", "occluded", "sparse-objects")
 Layout = Literal["ring", "occluded", "sparse-objects"]
 
@@ -54,7 +56,7 @@ _EPS = 1e-6
 _CHUNK = 1 << 17  # rays per numpy batch: bounds memory for large images
 
 
-class SceneSpecError(ValueError):
+class SceneSpecError(UserError, ValueError):
     """A bad argument to the scene generator (message is one line, meant for the user)."""
 
 

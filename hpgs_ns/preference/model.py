@@ -32,6 +32,7 @@ from torch import nn
 
 from hpgs_ns import offline_weights as ow
 from hpgs_ns.atomic_write import atomic_path
+from hpgs_ns.errors import UserError
 
 FORMAT = "hpgs-preference-model"
 VERSION = 1
@@ -40,11 +41,11 @@ IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
 
 
-class CheckpointError(ValueError):
+class CheckpointError(UserError, ValueError):
     """A preference-model checkpoint is missing, corrupt or does not match this code (one-line message)."""
 
 
-class BackboneUnavailable(RuntimeError):
+class BackboneUnavailable(UserError, RuntimeError):
     """Pretrained weights for a backbone are not on disk (one-line message naming the fix)."""
 
 

@@ -18,12 +18,13 @@ import numpy as np
 import torch
 
 from hpgs_ns.atomic_write import atomic_path
+from hpgs_ns.errors import UserError
 
 COLUMNS = ("Image_1", "Image_2", "Human Preference")
 SKIPPED = "Skipped"
 
 
-class PairsError(ValueError):
+class PairsError(UserError, ValueError):
     """A pairs CSV or one of its images is unusable; the one-line message names the file and the fix."""
 
 

@@ -14,8 +14,10 @@ import torch
 from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.models.base_model import Model
 
+from hpgs_ns.errors import UserError
 
-class SelectionError(RuntimeError):
+
+class SelectionError(UserError, RuntimeError):
     """A selector cannot choose (bad options, empty pool, non-finite scores)."""
 
 
