@@ -62,7 +62,7 @@ def reference_rasterization(
     info["means2d_pp"] [C,HW,N,2] collects per-pixel means2d gradients (for absgrad)."""
     from gsplat.cuda._torch_impl import _persp_proj, _quat_scale_to_covar_preci, _spherical_harmonics, _world_to_cam
 
-    C, N = viewmats.shape[0], means.shape[0]
+    C = viewmats.shape[0]
     dtype = means.dtype
     covars, _ = _quat_scale_to_covar_preci(quats, scales, True, False)
     means_c, covars_c = _world_to_cam(means, covars, viewmats)
@@ -432,7 +432,7 @@ def test_packed_and_unpacked_layouts_agree():
     """Same pairs, same projected values; radii differ only by gsplat's packed/unpacked radius floor."""
     scene = make_scene(n=40, seed=5, n_cameras=2, sh_degree=2)
     out = {p: render_and_grad(rasterization, scene, packed=p, absgrad=True, render_mode="RGB+D") for p in (0, 1)}
-    (r0, a0, m0, g0), (r1, a1, m1, g1) = out[0], out[1]
+    (r0, _, m0, g0), (r1, _, m1, g1) = out[0], out[1]
     cid, gid = m1["camera_ids"], m1["gaussian_ids"]
     assert torch.equal(torch.nonzero(m0["radii"] > 0, as_tuple=True)[0], cid)  # (camera, Gaussian) order
     assert torch.equal(torch.nonzero(m0["radii"] > 0, as_tuple=True)[1], gid)
@@ -447,7 +447,7 @@ def test_packed_and_unpacked_layouts_agree():
     # With both floors inactive (b^2 - det >= 0.1 for every pair: strongly anisotropic), the results are identical.
     aniso = dict(scene, scales=scene["scales"] * torch.tensor([4.0, 0.3, 0.3], dtype=F64))
     out = {p: render_and_grad(rasterization, aniso, packed=p, absgrad=True) for p in (0, 1)}
-    (r0, a0, m0, g0), (r1, a1, m1, g1) = out[0], out[1]
+    (r0, _, m0, g0), (r1, _, m1, g1) = out[0], out[1]
     cid, gid = m1["camera_ids"], m1["gaussian_ids"]
     assert torch.equal(m1["radii"], m0["radii"][cid, gid])
     torch.testing.assert_close(r0, r1, rtol=0, atol=1e-13)

@@ -6,7 +6,6 @@ import shutil
 import struct
 
 import pytest
-import torch  # noqa: F401  (before pycolmap: pycolmap 4.2.1 imported first breaks Pillow's PNG writer)
 
 from conftest import short_config
 from hpgs_ns.datamanager import ActiveViewError
