@@ -109,8 +109,11 @@ class Bench:
     """Rasterizer for all runs."""
     reset_after_add: bool = False
     """Reset the model and its schedules after each added view (FisherRF); results go under `<protocol>-reset`."""
+    strict_init: bool = False
+    """Start from seed points seen by two initial views only (needs COLMAP tracks); results go under `<protocol>-strict`."""
     extra_args: str = ""
-    """Extra `ns-train hpgs` arguments for every run (quoted)."""
+    """Extra `ns-train hpgs` arguments for every run (quoted). A finished run made with other arguments is an
+    error on resume, not skipped: pass another `--out`."""
     report_only: bool = False
     """Only rebuild the table and plots from existing JSON."""
     stress: List[PerturbationName] = field(default_factory=list)
@@ -156,6 +159,8 @@ class Bench:
                 protocol = scaled(PROTOCOLS[pname], self.step_scale)
                 if self.reset_after_add:
                     protocol = dataclasses.replace(protocol, name=f"{protocol.name}-reset")
+                if self.strict_init:
+                    protocol = dataclasses.replace(protocol, name=f"{protocol.name}-strict")
                 for seed in self.seeds:
                     names = list(self.selectors) + (list(REFERENCES) if self.references else [])
                     for name in names:
@@ -166,7 +171,19 @@ class Bench:
         for scene in self.scenes:
             if not (scene / "sparse" / "0").is_dir():
                 raise SystemExit(f"hpgs bench: {scene} is not a scene folder (no sparse/0); pass --scenes PATH")
-        todo = [job for job in self.jobs() if not result_path(self.out, job[0], job[1].name, job[2], job[3]).exists()]
+        todo = []
+        for job in self.jobs():
+            path = result_path(self.out, job[0], job[1].name, job[2], job[3])
+            if not path.exists():
+                todo.append(job)
+                continue
+            made_with = json.loads(path.read_text()).get("settings")  # absent in results older than this check
+            if made_with is not None and made_with != run_settings(self, job[1]):
+                changed = ", ".join(k for k in made_with if made_with[k] != run_settings(self, job[1]).get(k))
+                raise SystemExit(
+                    f"hpgs bench: {path} was made with other settings ({changed}); pass another --out to keep both, "
+                    "or delete it to re-run"
+                )
         if self.max_runs is not None and len(todo) > self.max_runs:
             CONSOLE.print(f"[yellow]--max-runs {self.max_runs}: {len(todo) - self.max_runs} runs left; run again to continue")
             todo = todo[: self.max_runs]
@@ -244,7 +261,20 @@ def train_args(bench: Bench, scene: Path, protocol: Protocol, name: str, seed: i
         args += ["--pipeline.datamanager.dataparser.downscale-factor", str(bench.downscale_factor)]
     if bench.reset_after_add:
         args += ["--pipeline.datamanager.reset-after-add", "True"]
+    if bench.strict_init:
+        args += ["--pipeline.datamanager.strict-init", "True"]
     return args + shlex.split(bench.extra_args)
+
+
+def run_settings(bench: Bench, protocol: Protocol) -> dict:
+    """What changes a run's numbers without changing its result path (checked when a sweep resumes)."""
+    return {
+        "steps": protocol.steps,
+        "initial_views": bench.initial_views or protocol.initial_views,
+        "downscale_factor": bench.downscale_factor,
+        "rasterizer": bench.rasterizer,
+        "extra_args": bench.extra_args,
+    }
 
 
 def run_one(
@@ -292,6 +322,7 @@ def run_one(
         "initial_views": selected["initial"],
         "chosen_views": [v for r in rounds for v in r["chosen"]],
         "command": shlex.join(cmd),
+        "settings": run_settings(bench, protocol),
         "device": device_name(),
     }
 

@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 
 import pytest
 
-from hpgs_ns.bench import Bench, device_counts, fisherrf_schedule, load_results, markdown_table, resolve_scenes, summed_work, work_table
+from hpgs_ns.bench import (
+    Bench, device_counts, fisherrf_schedule, load_results, markdown_table, resolve_scenes, summed_work, train_args,
+    work_table,
+)
 
 KEYS = {
     "scene", "protocol", "selector", "seed", "steps", "test", "psnr_per_round", "wall_seconds", "selection_seconds",
@@ -50,6 +54,21 @@ def test_tiny_bench_writes_results_table_plots_and_resumes(tiny_scene, tmp_path)
     bench.main()
     assert {p: p.stat().st_mtime for p in bench.out.glob("*/*/*/seed*.json")} == before
     assert json.loads(next(iter(before)).read_text())["seed"] == 0
+
+    # Other arguments into the same folder would mix runs: refused, naming the file and the fix.
+    changed = dataclasses.replace(bench, extra_args=bench.extra_args + " --pipeline.model.sh-degree 1")
+    with pytest.raises(SystemExit, match=r"seed0.json was made with other settings \(extra_args\); pass another --out"):
+        changed.main()
+    assert {p: p.stat().st_mtime for p in bench.out.glob("*/*/*/seed*.json")} == before
+
+
+def test_strict_init_runs_go_to_their_own_protocol_folder(tiny_scene, tmp_path):
+    bench = Bench(scenes=[tiny_scene], out=tmp_path, selectors=["random"], seeds=[0], references=False,
+                  reset_after_add=True, strict_init=True)
+    [(scene, protocol, name, seed)] = bench.jobs()
+    assert protocol.name == "hpgs-reset-strict"
+    args = train_args(bench, scene, protocol, name, seed, tmp_path / "_runs")
+    assert args[args.index("--pipeline.datamanager.strict-init") + 1] == "True"
 
 
 def test_work_table_shows_what_selection_skipped():
