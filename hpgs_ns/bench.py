@@ -421,7 +421,9 @@ def markdown_table(rows: List[dict]) -> str:
         cells = []
         for key in ("psnr", "ssim", "lpips"):
             m, s = _mean_std([g["test"][key] for g in group])
-            cells.append(f"{m:.3f} ± {s:.3f}" if key != "psnr" else f"{m:.2f} ± {s:.2f}")
+            digits = 2 if key == "psnr" else 3
+            # One seed has no spread to show (a "± 0.00" would read as a measured one).
+            cells.append(f"{m:.{digits}f} ± {s:.{digits}f}" if len(group) > 1 else f"{m:.{digits}f}")
         wall, _ = _mean_std([g["wall_seconds"] for g in group])
         selt, _ = _mean_std([g["selection_seconds"] for g in group])
         views = group[0]["num_views_final"]
