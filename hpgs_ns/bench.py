@@ -178,8 +178,9 @@ class Bench:
                 todo.append(job)
                 continue
             made_with = json.loads(path.read_text()).get("settings")  # absent in results older than this check
-            if made_with is not None and made_with != run_settings(self, job[1]):
-                changed = ", ".join(k for k in made_with if made_with[k] != run_settings(self, job[1]).get(k))
+            settings = run_settings(self, job[1])
+            if made_with is not None and made_with != settings:
+                changed = ", ".join(k for k in made_with if made_with[k] != settings.get(k))
                 raise SystemExit(
                     f"hpgs bench: {path} was made with other settings ({changed}); pass another --out to keep both, "
                     "or delete it to re-run"
@@ -434,12 +435,16 @@ def markdown_table(rows: List[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def short_device(row: dict) -> str:
+    """`NVIDIA H100 80GB HBM3` -> `H100`, `cpu x2` -> `cpu`."""
+    return str(row.get("device", "?")).replace("NVIDIA ", "").split()[0]
+
+
 def device_counts(group: List[dict]) -> str:
     """`H100 x2, H200`: wall times are only comparable on one device, and sweeps span sessions and machines."""
     counts: Dict[str, int] = {}
     for g in group:
-        short = str(g.get("device", "?")).replace("NVIDIA ", "").split()[0]
-        counts[short] = counts.get(short, 0) + 1
+        counts[short_device(g)] = counts.get(short_device(g), 0) + 1
     return ", ".join(name if n == 1 else f"{name} x{n}" for name, n in sorted(counts.items()))
 
 
@@ -456,12 +461,12 @@ def make_plots(rows: List[dict], out: Path) -> List[Path]:
         group = [r for r in rows if r["scene"] == scene and r["protocol"] == protocol]
         fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4.2))
         # One marker per device: run times are only comparable on one device.
-        markers = dict(zip(sorted({device_counts([r]) for r in group}), "o^sDvP"))
+        markers = dict(zip(sorted({short_device(r) for r in group}), "o^sDvP"))
         for i, sel in enumerate(sorted({r["selector"] for r in group})):
             rs = [r for r in group if r["selector"] == sel]
             for n, r in enumerate(rs):
                 ax1.scatter(r["wall_seconds"], r["test"]["psnr"], s=30, color=f"C{i}",
-                            marker=markers[device_counts([r])], label=sel if n == 0 else None)
+                            marker=markers[short_device(r)], label=sel if n == 0 else None)
             if sel in REFERENCES:
                 continue
             for k, r in enumerate(rs):

@@ -12,22 +12,17 @@ scene that already has it:
 from __future__ import annotations
 
 import shutil
-import struct
 import sys
 from pathlib import Path
 
+import numpy as np
 from nerfstudio.data.utils import colmap_parsing_utils as colmap_utils
 
 
 def write_images_without_keypoints(src: Path, dst: Path) -> None:
-    """COLMAP's images.bin layout with zero 2D points per image (nerfstudio's reader has no writer)."""
     images = colmap_utils.read_images_binary(src)
-    with open(dst, "wb") as f:
-        f.write(struct.pack("<Q", len(images)))
-        for image in images.values():
-            f.write(struct.pack("<i4d3di", image.id, *image.qvec, *image.tvec, image.camera_id))
-            f.write(image.name.encode() + b"\0")
-            f.write(struct.pack("<Q", 0))
+    none = dict(xys=np.zeros((0, 2)), point3D_ids=np.zeros(0, dtype=np.int64))
+    colmap_utils.write_images_binary({k: im._replace(**none) for k, im in images.items()}, dst)
 
 
 def main(scene: Path, images_dir: Path, out: Path) -> None:

@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 import shutil
-import struct
 
+import numpy as np
 import pytest
 
 from conftest import short_config
@@ -40,10 +40,9 @@ def without_tracks(scene, out):
     copy = shutil.copytree(scene, out)
     path = copy / "sparse" / "0" / "points3D.bin"
     points = colmap_utils.read_points3D_binary(path)
-    with open(path, "wb") as f:  # COLMAP's binary layout: id, xyz, rgb, error, track length (0 here)
-        f.write(struct.pack("<Q", len(points)))
-        for p in points.values():
-            f.write(struct.pack("<Q3d3BdQ", p.id, *p.xyz, *p.rgb, p.error, 0))
+    empty = np.zeros(0, dtype=np.int64)
+    trackless = {k: p._replace(image_ids=empty, point2D_idxs=empty) for k, p in points.items()}
+    colmap_utils.write_points3D_binary(trackless, path)
     return copy
 
 
