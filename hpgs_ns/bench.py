@@ -500,9 +500,9 @@ def camera_centres(scene: Path) -> Optional[Dict[str, Tuple[float, float]]]:
     import numpy as np
     from nerfstudio.data.utils import colmap_parsing_utils as colmap_utils
 
-    from hpgs_ns.dataparser import read_colmap_images
+    from hpgs_ns.colmap_model import read_images
 
-    images = read_colmap_images(scene)
+    images = read_images(Path(scene) / "sparse" / "0")
     if images is None:
         return None
     names = [im.name for im in images.values()]

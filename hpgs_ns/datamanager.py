@@ -161,20 +161,15 @@ class ActiveDatamanager(FullImageDatamanager):
     def _keep_points_seen_by_initial_views(self, min_views: int = 2) -> None:
         """Filter the dataparser's seed points in place (the pipeline hands them to the model after this)."""
         # nerfstudio's own COLMAP reader, as its dataparser used: the mask then lines up with its point order.
-        from nerfstudio.data.utils import colmap_parsing_utils as colmap_utils
+        from hpgs_ns.colmap_model import read_images, read_points3D
 
         meta = self.train_dataparser_outputs.metadata
         if "points3D_xyz" not in meta:
             return
         model_dir = Path(self.config.dataparser.data) / self.config.dataparser.colmap_path
-        if (model_dir / "images.bin").exists():
-            images = colmap_utils.read_images_binary(model_dir / "images.bin")
-        else:
-            images = colmap_utils.read_images_text(model_dir / "images.txt")
-        if (model_dir / "points3D.bin").exists():
-            points = colmap_utils.read_points3D_binary(model_dir / "points3D.bin")
-        else:
-            points = colmap_utils.read_points3D_text(model_dir / "points3D.txt")
+        images, points = read_images(model_dir), read_points3D(model_dir)
+        if images is None or points is None:
+            raise ActiveViewError(f"strict-init needs {model_dir}/images and points3D (.bin or .txt); drop --pipeline.datamanager.strict-init")
         name_to_id = {im.name: im_id for im_id, im in images.items()}
         initial_ids = {name_to_id[self.image_names[i]] for i in self.active if self.image_names[i] in name_to_id}
         tracks = [set(p.image_ids.tolist()) for p in points.values()]

@@ -22,6 +22,7 @@ from nerfstudio.data.dataparsers.colmap_dataparser import ColmapDataParser, Colm
 from nerfstudio.utils.rich_utils import CONSOLE
 from PIL import Image
 
+from hpgs_ns.colmap_model import model_file
 from hpgs_ns.errors import UserError
 
 MAX_AUTO_RESOLUTION = 1600  # nerfstudio's rule for the automatic downscale factor
@@ -62,11 +63,11 @@ class MipNerf360DataParser(ColmapDataParser):
         if not data.is_dir():
             raise SceneDataError(f"scene folder {data} does not exist; pass --data PATH to a Mip-NeRF 360 style scene")
         model = data / self.config.colmap_path
-        if not ((model / "cameras.bin").exists() or (model / "cameras.txt").exists()):
+        if model_file(model, "cameras") is None:
             raise SceneDataError(
                 f"no camera poses: {model}/cameras.bin (or .txt) is missing; run COLMAP first or set --colmap-path"
             )
-        if not ((model / "images.bin").exists() or (model / "images.txt").exists()):
+        if model_file(model, "images") is None:
             raise SceneDataError(f"no camera poses: {model}/images.bin (or .txt) is missing; run COLMAP first")
         if not self._image_folder().is_dir():
             raise SceneDataError(f"image folder {self._image_folder()} does not exist; set --images-path or --downscale-factor")
@@ -187,17 +188,4 @@ def image_problem(path: Path) -> Optional[str]:
                 image.verify()
     except Exception as err:  # PIL raises OSError, SyntaxError, struct.error, ... for damaged files
         return "truncated" if "truncated" in str(err).lower() else (str(err) or type(err).__name__)
-    return None
-
-
-def read_colmap_images(scene: Path) -> Optional[dict]:
-    """The images (id -> COLMAP Image: name, qvec, tvec) of a scene folder's `sparse/0` model, binary or text;
-    None when the folder has no model."""
-    from nerfstudio.data.utils import colmap_parsing_utils as colmap_utils
-
-    model = Path(scene) / "sparse" / "0"
-    if (model / "images.bin").exists():
-        return colmap_utils.read_images_binary(model / "images.bin")
-    if (model / "images.txt").exists():
-        return colmap_utils.read_images_text(model / "images.txt")
     return None

@@ -52,35 +52,32 @@ class PoseNoise:
     """RMS rotation angle in degrees."""
 
     def apply(self, scene: Path, train: Sequence[str], rng: np.random.Generator) -> dict:
-        import pycolmap
+        from nerfstudio.data.utils.colmap_parsing_utils import qvec2rotmat, rotmat2qvec
+
+        from hpgs_ns.colmap_model import read_images, write_images
 
         model = scene / "sparse" / "0"
-        rec = pycolmap.Reconstruction(str(model))
-        by_name = {im.name: im for im in rec.images.values()}
-        centres = np.stack([np.asarray(im.projection_center()) for im in by_name.values()])
-        spread = float(np.sqrt(((centres - centres.mean(0)) ** 2).sum(1).mean()))
+        images = read_images(model)
+        by_name = {im.name: im for im in images.values()}
+        # COLMAP stores cam_from_world (R, t); the centre is -R^T t.
+        rotations = {name: qvec2rotmat(im.qvec) for name, im in by_name.items()}
+        centres = {name: -rotations[name].T @ im.tvec for name, im in by_name.items()}
+        stacked = np.stack(list(centres.values()))
+        spread = float(np.sqrt(((stacked - stacked.mean(0)) ** 2).sum(1).mean()))
         # Per-axis sigma of 1/sqrt(3) of the target makes the RMS of the 3D vector equal the target.
         sigma_t = self.translation * spread / math.sqrt(3)
         sigma_r = math.radians(self.rotation_deg) / math.sqrt(3)
         moved = {}
         for name in sorted(train):
             im = by_name[name]
-            cam_from_world = im.cam_from_world().matrix()
-            rotation, centre = cam_from_world[:, :3], np.asarray(im.projection_center())
             axis_angle = rng.normal(0.0, sigma_r, 3)
             shift = rng.normal(0.0, sigma_t, 3)
             # World-from-camera rotation turned by `noise` (in the world frame), centre shifted.
-            new_rotation = rotation @ rodrigues(axis_angle).T
-            new_centre = centre + shift
-            pose = pycolmap.Rigid3d(pycolmap.Rotation3d(new_rotation), -new_rotation @ new_centre)
-            rec.frames[im.frame_id].set_cam_from_world(im.camera_id, pose)
+            new_rotation = rotations[name] @ rodrigues(axis_angle).T
+            new_centre = centres[name] + shift
+            images[im.id] = im._replace(qvec=rotmat2qvec(new_rotation), tvec=-new_rotation @ new_centre)
             moved[name] = {"rotation_deg": math.degrees(float(np.linalg.norm(axis_angle))), "translation": float(np.linalg.norm(shift))}
-        # Written beside and renamed in, so the model is never half old, half new.
-        tmp = Path(tempfile.mkdtemp(prefix=".model-", dir=model.parent))
-        rec.write(str(tmp))
-        for path in tmp.iterdir():
-            os.replace(path, model / path.name)
-        tmp.rmdir()
+        write_images(model, images)
         rms = lambda key: math.sqrt(sum(m[key] ** 2 for m in moved.values()) / max(len(moved), 1))  # noqa: E731
         return {"camera_spread": spread, "rms_rotation_deg": rms("rotation_deg"), "rms_translation": rms("translation"), "views": moved}
 
@@ -167,9 +164,9 @@ def rodrigues(axis_angle: np.ndarray) -> np.ndarray:
 def split_names(scene: Path) -> Tuple[List[str], List[str]]:
     """(training, test) image names of a scene: the COLMAP model's images in file-name order, every 8th a test
     view, as the dataparser splits them."""
-    from hpgs_ns.dataparser import read_colmap_images
+    from hpgs_ns.colmap_model import read_images
 
-    images = read_colmap_images(scene)
+    images = read_images(scene / "sparse" / "0")
     if images is None:
         raise StressError(f"{scene} is not a scene folder (no sparse/0/images.bin); pass a Mip-NeRF 360 style scene")
     names = sorted(Path(im.name).name for im in images.values())
