@@ -168,7 +168,7 @@ def split_names(scene: Path) -> Tuple[List[str], List[str]]:
 
     images = read_images(scene / "sparse" / "0")
     if images is None:
-        raise StressError(f"{scene} is not a scene folder (no sparse/0/images.bin); pass a Mip-NeRF 360 style scene")
+        raise StressError(f"{scene} is not a scene folder (no sparse/0/images.bin or .txt); pass a Mip-NeRF 360 style scene")
     names = sorted(Path(im.name).name for im in images.values())
     return [n for i, n in enumerate(names) if i % EVAL_INTERVAL != 0], [n for i, n in enumerate(names) if i % EVAL_INTERVAL == 0]
 
