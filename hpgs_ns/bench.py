@@ -498,15 +498,14 @@ def camera_centres(scene: Path) -> Optional[Dict[str, Tuple[float, float]]]:
     """Top-down 2D positions of a scene's cameras by image name: COLMAP centres projected on the plane of their
     two principal directions (the capture's ground plane for orbit-like captures)."""
     import numpy as np
-    from nerfstudio.data.utils import colmap_parsing_utils as colmap_utils
 
-    from hpgs_ns.colmap_model import read_images
+    from hpgs_ns.colmap_model import camera_pose, read_images
 
     images = read_images(Path(scene) / "sparse" / "0")
     if images is None:
         return None
     names = [im.name for im in images.values()]
-    centres = np.stack([-colmap_utils.qvec2rotmat(im.qvec).T @ im.tvec for im in images.values()])
+    centres = np.stack([camera_pose(im)[1] for im in images.values()])
     centred = centres - centres.mean(axis=0)
     _, _, vt = np.linalg.svd(centred, full_matrices=False)
     xy = centred @ vt[:2].T

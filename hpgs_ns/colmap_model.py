@@ -9,8 +9,9 @@ nerfstudio's `read_model` would do the format detection but prints and returns N
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Dict, Optional
+from typing import Dict, Optional, Tuple
 
+import numpy as np
 from nerfstudio.data.utils import colmap_parsing_utils as colmap_utils
 
 from hpgs_ns.atomic_write import atomic_path
@@ -42,6 +43,13 @@ def read_points3D(model_dir: Path) -> Optional[Dict[int, colmap_utils.Point3D]]:
     if path is None:
         return None
     return colmap_utils.read_points3D_binary(path) if path.suffix == ".bin" else colmap_utils.read_points3D_text(path)
+
+
+def camera_pose(image: colmap_utils.Image) -> Tuple[np.ndarray, np.ndarray]:
+    """(cam_from_world rotation R [3, 3], camera centre [3]) of a COLMAP image, which stores x_cam = R x + t:
+    the centre is -R^T t."""
+    rotation = colmap_utils.qvec2rotmat(image.qvec)
+    return rotation, -rotation.T @ image.tvec
 
 
 def write_images(model_dir: Path, images: Dict[int, colmap_utils.Image]) -> Path:

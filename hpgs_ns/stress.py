@@ -52,18 +52,16 @@ class PoseNoise:
     """RMS rotation angle in degrees."""
 
     def apply(self, scene: Path, train: Sequence[str], rng: np.random.Generator) -> dict:
-        from nerfstudio.data.utils.colmap_parsing_utils import qvec2rotmat, rotmat2qvec
+        from nerfstudio.data.utils.colmap_parsing_utils import rotmat2qvec
 
-        from hpgs_ns.colmap_model import read_images, write_images
+        from hpgs_ns.colmap_model import camera_pose, read_images, write_images
 
         model = scene / "sparse" / "0"
         images = read_images(model)
         by_name = {im.name: im for im in images.values()}
-        # COLMAP stores cam_from_world (R, t); the centre is -R^T t.
-        rotations = {name: qvec2rotmat(im.qvec) for name, im in by_name.items()}
-        centres = {name: -rotations[name].T @ im.tvec for name, im in by_name.items()}
-        stacked = np.stack(list(centres.values()))
-        spread = float(np.sqrt(((stacked - stacked.mean(0)) ** 2).sum(1).mean()))
+        poses = {name: camera_pose(im) for name, im in by_name.items()}
+        centres = np.stack([centre for _, centre in poses.values()])
+        spread = float(np.sqrt(((centres - centres.mean(0)) ** 2).sum(1).mean()))
         # Per-axis sigma of 1/sqrt(3) of the target makes the RMS of the 3D vector equal the target.
         sigma_t = self.translation * spread / math.sqrt(3)
         sigma_r = math.radians(self.rotation_deg) / math.sqrt(3)
@@ -73,8 +71,9 @@ class PoseNoise:
             axis_angle = rng.normal(0.0, sigma_r, 3)
             shift = rng.normal(0.0, sigma_t, 3)
             # World-from-camera rotation turned by `noise` (in the world frame), centre shifted.
-            new_rotation = rotations[name] @ rodrigues(axis_angle).T
-            new_centre = centres[name] + shift
+            rotation, centre = poses[name]
+            new_rotation = rotation @ rodrigues(axis_angle).T
+            new_centre = centre + shift
             images[im.id] = im._replace(qvec=rotmat2qvec(new_rotation), tvec=-new_rotation @ new_centre)
             moved[name] = {"rotation_deg": math.degrees(float(np.linalg.norm(axis_angle))), "translation": float(np.linalg.norm(shift))}
         write_images(model, images)
