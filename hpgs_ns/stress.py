@@ -259,40 +259,66 @@ def split_scene_name(scene: str) -> Tuple[str, str]:
     return base, perturbation or "clean"
 
 
-def _mean_psnr(rows: List[dict]) -> Dict[Tuple[str, str, str, str], float]:
-    """(base scene, protocol, selector, perturbation) -> mean test PSNR over seeds."""
-    values: Dict[Tuple[str, str, str, str], List[float]] = {}
+Key = Tuple[str, str, str, str]  # (base scene, protocol, selector, perturbation)
+
+
+def _psnr_by_seed(rows: List[dict]) -> Dict[Key, Dict[int, float]]:
+    """(base scene, protocol, selector, perturbation) -> {seed: test PSNR}."""
+    values: Dict[Key, Dict[int, float]] = {}
     for r in rows:
         base, perturbation = split_scene_name(r["scene"])
-        values.setdefault((base, r["protocol"], r["selector"], perturbation), []).append(r["test"]["psnr"])
-    return {k: sum(v) / len(v) for k, v in values.items()}
+        values.setdefault((base, r["protocol"], r["selector"], perturbation), {})[r["seed"]] = r["test"]["psnr"]
+    return values
+
+
+def _mean(values) -> float:
+    values = list(values)
+    return sum(values) / len(values)
+
+
+def _paired_change(psnr: Dict[Key, Dict[int, float]], key: Key) -> Optional[float]:
+    """Mean over seeds of (perturbed - clean), on the seeds run both ways: seeds differ in their initial views,
+    so a perturbed seed is only compared with the same seed's clean run. None without a common seed."""
+    clean = psnr.get(key[:3] + ("clean",), {})
+    seeds = sorted(set(psnr.get(key, {})) & set(clean))
+    return _mean(psnr[key][s] - clean[s] for s in seeds) if seeds else None
+
+
+def _stress_groups(psnr: Dict[Key, Dict[int, float]]):
+    """(base, protocol, perturbations, selectors in bench order) for every group with a perturbed run."""
+    from hpgs_ns.bench import REFERENCES, SELECTORS
+
+    order = {name: i for i, name in enumerate(list(SELECTORS) + list(REFERENCES))}
+    for base, protocol in sorted({k[:2] for k in psnr if k[3] != "clean"}):
+        keys = [k for k in psnr if k[:2] == (base, protocol)]
+        perturbations = sorted({k[3] for k in keys if k[3] != "clean"})
+        selectors = sorted({k[2] for k in keys}, key=lambda s: (order.get(s, 99), s))
+        yield base, protocol, perturbations, selectors
 
 
 def stress_plot(rows: List[dict], out: Path) -> List[Path]:
-    """Per (scene, protocol): bars of the PSNR change from clean, one group per selector, one bar per perturbation."""
+    """Per (scene, protocol): bars of the PSNR change from clean (paired by seed), one group per selector, one bar
+    per perturbation."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from hpgs_ns.bench import REFERENCES, SELECTORS
-
-    psnr = _mean_psnr(rows)
-    order = {name: i for i, name in enumerate(list(SELECTORS) + list(REFERENCES))}
+    psnr = _psnr_by_seed(rows)
     paths = []
-    for base, protocol in sorted({k[:2] for k in psnr if k[3] != "clean"}):
-        keys = [k for k in psnr if k[:2] == (base, protocol)]
-        perturbations = sorted({k[3] for k in keys if k[3] != "clean"})
-        selectors = sorted({k[2] for k in keys if (base, protocol, k[2], "clean") in psnr}, key=lambda s: (order.get(s, 99), s))
+    for base, protocol, perturbations, selectors in _stress_groups(psnr):
+        selectors = [s for s in selectors if any(_paired_change(psnr, (base, protocol, s, p)) is not None for p in perturbations)]
+        if not selectors:
+            continue
         fig, ax = plt.subplots(figsize=(1.4 * len(selectors) + 2, 3.6))
         width = 0.8 / len(perturbations)
         for j, p in enumerate(perturbations):
             xs = [i + (j - (len(perturbations) - 1) / 2) * width for i in range(len(selectors))]
-            drops = [psnr.get((base, protocol, s, p), float("nan")) - psnr[(base, protocol, s, "clean")] for s in selectors]
-            ax.bar(xs, drops, width, label=p)
+            drops = [_paired_change(psnr, (base, protocol, s, p)) for s in selectors]
+            ax.bar(xs, [float("nan") if d is None else d for d in drops], width, label=p)
         ax.axhline(0, color="k", lw=0.8)
         ax.set_xticks(range(len(selectors)), selectors)
-        ax.set(ylabel="test PSNR change from clean (dB)", title=f"{base} / {protocol}: stress")
+        ax.set(ylabel="test PSNR change from clean (dB)", title=f"{base} / {protocol}: stress (same seeds)")
         ax.legend(fontsize=8)
         fig.tight_layout()
         path = out / f"{base}-{protocol}-stress.png"
@@ -303,39 +329,35 @@ def stress_plot(rows: List[dict], out: Path) -> List[Path]:
 
 
 def stress_table(rows: List[dict]) -> str:
-    """Test PSNR per selector on the clean scene and under each perturbation (mean over seeds), with the change
-    from clean in dB; "" when no row is from a perturbed scene."""
-    from hpgs_ns.bench import REFERENCES, SELECTORS
-
-    if not any("+" in r["scene"] for r in rows):
-        return ""
-    psnr = _mean_psnr(rows)
-    order = {name: i for i, name in enumerate(list(SELECTORS) + list(REFERENCES))}
+    """Per scene and protocol with perturbed runs: test PSNR per selector, clean and under each perturbation, with
+    the change from clean in dB paired by seed; "" when no row is from a perturbed scene."""
+    psnr = _psnr_by_seed(rows)
     lines = []
-    for base, protocol in sorted({(k[0], k[1]) for k in psnr}):
-        keys = [k for k in psnr if k[:2] == (base, protocol)]
-        perturbations = sorted({k[3] for k in keys if k[3] != "clean"})
-        selectors = sorted({k[2] for k in keys}, key=lambda s: (order.get(s, 99), s))
+    for base, protocol, perturbations, selectors in _stress_groups(psnr):
         lines += [
-            f"**{base} / {protocol}**: test PSNR (dB), mean over seeds; in brackets the change from clean",
+            f"**{base} / {protocol}**: test PSNR (dB), mean over seeds; clean over the seeds also run perturbed; "
+            "in brackets the change from clean on the same seeds",
             "",
             "| selector | clean | " + " | ".join(perturbations) + " | mean change |",
             "|---|---|" + "---|" * len(perturbations) + "---|",
         ]
         for sel in selectors:
-            clean_mean = psnr.get((base, protocol, sel, "clean"))
+            clean = psnr.get((base, protocol, sel, "clean"), {})
+            stressed_seeds = set().union(*(psnr.get((base, protocol, sel, p), {}) for p in perturbations)) & set(clean)
+            clean_cell = f"{_mean(clean[s] for s in sorted(stressed_seeds or clean)):.2f}" if clean else "–"
             cells, drops = [], []
             for p in perturbations:
-                mean = psnr.get((base, protocol, sel, p))
-                if mean is None:
+                runs = psnr.get((base, protocol, sel, p))
+                if not runs:
                     cells.append("–")
                     continue
-                if clean_mean is None:
-                    cells.append(f"{mean:.2f}")
-                else:
-                    drops.append(mean - clean_mean)
-                    cells.append(f"{mean:.2f} ({mean - clean_mean:+.2f})")
-            avg = f"{sum(drops) / len(drops):+.2f}" if drops else "–"
-            lines.append(f"| {sel} | {'–' if clean_mean is None else f'{clean_mean:.2f}'} | {' | '.join(cells)} | {avg} |")
+                change = _paired_change(psnr, (base, protocol, sel, p))
+                drops.append(change)
+                mean = _mean(runs.values())
+                cells.append(f"{mean:.2f}" if change is None else f"{mean:.2f} ({change:+.2f})")
+            # Averaged only over a full row: a mean of some perturbations is not comparable with one of all.
+            full = len(drops) == len(perturbations) and None not in drops
+            avg = f"{_mean(drops):+.2f}" if full else "–"
+            lines.append(f"| {sel} | {clean_cell} | {' | '.join(cells)} | {avg} |")
         lines.append("")
     return "\n".join(lines)

@@ -178,17 +178,22 @@ def row(scene, selector, psnr, seed=0):
     return {"scene": scene, "protocol": "hpgs", "selector": selector, "seed": seed, "test": {"psnr": psnr}}
 
 
-def test_stress_table_shows_the_drop_from_clean_per_selector():
+def test_stress_table_pairs_each_perturbed_run_with_the_same_seeds_clean_run():
     rows = [
-        row("ring", "random", 20.0), row("ring", "random", 22.0, seed=1), row("ring+exposure", "random", 18.5),
-        row("ring+exposure", "random", 19.5, seed=1), row("ring+pose-noise", "random", 17.0),
+        row("ring", "random", 20.0), row("ring", "random", 22.0, seed=1), row("ring", "random", 30.0, seed=2),
+        row("ring+exposure", "random", 18.5), row("ring+exposure", "random", 19.5, seed=1),
+        row("ring+pose-noise", "random", 17.0),
         row("ring", "fisher", 23.0), row("ring+exposure", "fisher", 22.75), row("ring", "all", 25.0),
+        dict(row("ring", "random", 21.0), protocol="fisherrf"),  # a group with no perturbed run: no table
     ]
     table = stress_table(rows).splitlines()
+    assert table[0].startswith("**ring / hpgs**")
     assert table[2] == "| selector | clean | exposure | pose-noise | mean change |"
-    assert table[4] == "| random | 21.00 | 19.00 (-2.00) | 17.00 (-4.00) | -3.00 |"
-    assert table[5] == "| fisher | 23.00 | 22.75 (-0.25) | – | -0.25 |"
+    # clean over seeds 0-1 (seed 2 never ran perturbed); pose-noise ran seed 0 only: 17 - 20, not 17 - 21.
+    assert table[4] == "| random | 21.00 | 19.00 (-2.00) | 17.00 (-3.00) | -2.50 |"
+    assert table[5] == "| fisher | 23.00 | 22.75 (-0.25) | – | – |"  # no mean over a partial row
     assert table[6] == "| all | 25.00 | – | – | – |"
+    assert not any("fisherrf" in line for line in table)
     assert stress_table([row("ring", "random", 20.0)]) == ""
 
 
