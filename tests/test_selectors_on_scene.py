@@ -114,6 +114,21 @@ def test_hpgs_with_a_blur_preferring_model_picks_the_unseen_side(one_sided, tiny
     assert len(selection.scores) == len(trainer.pipeline.datamanager.candidates)
 
 
+def test_preference_selectors_render_small_views_as_they_are_and_large_ones_at_the_model_size(one_sided):
+    from hpgs_ns.selectors.preference_features import _render_short_side
+
+    trainer, _ = one_sided
+    # 64x48 views, below the shipped model's 224-pixel input: rendered at their own size, not upsampled.
+    names, selection = pick(trainer, HpgsSelectorConfig(), "hpgs")
+    assert selection.work["pixels_rendered"] == selection.work["pixels_full_resolution"] > 0
+    pref = HpgsSelectorConfig().setup().pref
+    cameras = trainer.pipeline.datamanager.train_dataset.cameras[:2]
+    assert _render_short_side(pref, None, cameras) is None
+    cameras.rescale_output_resolution(10.0)  # 640x480
+    assert _render_short_side(pref, None, cameras) == pref.input_size == 224
+    assert _render_short_side(pref, 32, cameras) == 32  # an explicit size wins
+
+
 def test_random_follows_seed_and_empty_pool_ends_selection(one_sided):
     trainer, _ = one_sided
     a, _ = pick(trainer, RandomSelectorConfig(), "random", k=3)

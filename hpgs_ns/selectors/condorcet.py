@@ -33,7 +33,7 @@ class CondorcetSelectorConfig(InstantiateConfig):
     batch_size: int = 16
     """Images per model forward."""
     render_short_side: Optional[int] = None
-    """Short side of the renders fed to the model; default: the model's input size."""
+    """Short side of the renders fed to the model; default: the model's input size, or the views' own if smaller."""
 
 
 def duel_wins(scores: torch.Tensor) -> torch.Tensor:

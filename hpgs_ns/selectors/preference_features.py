@@ -28,8 +28,16 @@ def load_preference_model(path: Optional[Path], device: str = "cpu"):
         raise SelectionError(f"{path} is not a usable preference-model checkpoint ({err}); retrain with `hpgs train-pref`") from err
 
 
-def _short_side(pref, requested: Optional[int]) -> int:
-    return int(requested or getattr(pref, "input_size", 224))
+def _render_short_side(pref, requested: Optional[int], cameras) -> Optional[int]:
+    """The short side to render `cameras` at: `requested`, else the model's input size, but never above the views'
+    own resolution (None: as they are). The model resizes every input to its size anyway, so rendering a small
+    view larger only costs raster time (9.7x the pixels for 96x72 views) and gives a sharper image than the
+    renders the model was trained on."""
+    if requested:
+        return int(requested)
+    target = int(getattr(pref, "input_size", 224))
+    native = int(torch.minimum(cameras.width, cameras.height).max())
+    return None if native <= target else target
 
 
 @torch.no_grad()
@@ -38,11 +46,10 @@ def _batched(pref, context: SelectionContext, views: Sequence[int], short_side: 
     pref.to(context.device)
     work = {} if work is None else work
     outs: List[torch.Tensor] = []
-    side = _short_side(pref, short_side)
     for start in range(0, len(views), batch):
         chunk = list(views[start : start + batch])
-        renders = context.render(chunk, side)
         full = context.cameras[torch.tensor(chunk, dtype=torch.long)]
+        renders = context.render(chunk, _render_short_side(pref, short_side, full))
         for key, n in (("views_rendered", len(chunk)), ("pixels_rendered", sum(im.shape[0] * im.shape[1] for im in renders)),
                        ("pixels_full_resolution", int((full.width * full.height).sum())), ("model_forwards", len(chunk))):
             work[key] = work.get(key, 0) + n
