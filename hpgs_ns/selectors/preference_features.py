@@ -29,10 +29,11 @@ def load_preference_model(path: Optional[Path], device: str = "cpu"):
 
 
 def _render_short_side(pref, requested: Optional[int], cameras) -> Optional[int]:
-    """The short side to render `cameras` at: `requested`, else the model's input size, but never above the views'
-    own resolution (None: as they are). The model resizes every input to its size anyway, so rendering a small
-    view larger only costs raster time (9.7x the pixels for 96x72 views); this way the model sees what its input
-    recipe makes of the view at its own size, as for a photo."""
+    """The short side to render `cameras` (one batch) at: `requested`, else the model's input size, or None (as they
+    are) when no view of the batch is larger than that; a batch mixing sizes renders all at the input size. The
+    model resizes every input to its size anyway, so rendering a small view larger only costs raster time (9.7x
+    the pixels for 96x72 views); this way the model sees what its input recipe makes of the view at its own size,
+    as for a photo."""
     if requested:
         return int(requested)
     target = int(getattr(pref, "input_size", 224))
