@@ -23,8 +23,11 @@ cp -rn benchmarks/results/bench/. "$bench/" 2>/dev/null  # -n: keep runs already
 
 out_name() { echo "${1#"$bench"/}" | tr / _ | sed 's/+/PLUS/g'; }
 
-# Results of earlier calls on this (still warm) machine that may not have come back.
-find "$bench" -path '*+*' -name 'seed*.json' | while read -r f; do cp "$f" "$OUT/$(out_name "$f")"; done
+# Results of earlier calls on this (still warm) machine that may not have come back: only those not committed,
+# since the device tool returns a few files per call.
+find "$bench" -name 'seed*.json' | while read -r f; do
+  cmp -s "$f" "benchmarks/results/bench/${f#"$bench"/}" || cp "$f" "$OUT/$(out_name "$f")"
+done
 touch /tmp/queue-start
 (
   while sleep 3; do
