@@ -76,8 +76,8 @@ class ActiveDatamanagerConfig(FullImageDatamanagerConfig):
     """Rounds before selection stops (HP-GS: 7 additions over 15000 steps)."""
     seed: int = 0
     """Seeds the initial views (random/fps) and the selectors' randomness."""
-    selector: SelectorName = "random"
-    """Which selector picks the next views."""
+    selector: SelectorName = "hpgs"
+    """Which selector picks the next views (default: the paper's human-preference selector)."""
     random: RandomSelectorConfig = field(default_factory=RandomSelectorConfig)
     """Options of the `random` selector."""
     farthest: FarthestSelectorConfig = field(default_factory=FarthestSelectorConfig)

@@ -28,7 +28,7 @@ class Demo:
 
     out: Path = Path("outputs/demo")
     """Folder for the scene and the run."""
-    selector: str = "random"
+    selector: str = "hpgs"
     """Selector to use (see `ns-train hpgs --help`)."""
     layout: str = "ring"
     """Synthetic scene layout."""

@@ -78,6 +78,7 @@ def photometric_error(trainer) -> float:
 def test_rounds_happen_on_schedule_and_log(trained):
     log = json.loads((trained["run_dir"] / "selected_views.json").read_text())
     assert [r["step"] for r in log["rounds"]] == [20, 40]
+    assert log["selector"] == "hpgs"  # `ns-train hpgs` picks with the paper's selector unless told otherwise
     assert len(log["initial"]) == 6 and len(log["active"]) == 8
     chosen = [name for r in log["rounds"] for name in r["chosen"]]
     assert set(chosen).isdisjoint(log["initial"]) and set(log["active"]) == set(log["initial"]) | set(chosen)
