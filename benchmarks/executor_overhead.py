@@ -32,7 +32,8 @@ def dispatch(executor, items: int) -> float:
 
 
 def sweep_seconds(scene: Path, out: Path, runs: int, cluster) -> dict:
-    from hpgs_ns.bench import Bench, load_results
+    from hpgs_ns.bench.report import load_results
+    from hpgs_ns.bench.runs import Bench
 
     bench = Bench(
         scenes=[scene], out=out, selectors=["random", "farthest"][:runs], seeds=[0], protocols=["hpgs"],
@@ -56,8 +57,8 @@ def main() -> None:
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
     import ray
 
-    from hpgs_ns.executors import ExecutorConfig, LocalExecutor, RayExecutor, SlurmExecutor, start_local_ray
-    from hpgs_ns.synthetic_scene import make_scene
+    from hpgs_ns.bench.executors import ExecutorConfig, LocalExecutor, RayExecutor, SlurmExecutor, start_local_ray
+    from hpgs_ns.scenes.synthetic import make_scene
 
     tmp = Path(tempfile.mkdtemp(prefix="executor_overhead."))
     report: dict = {"machine": f"{platform.node()} cpu x{os.cpu_count()}", "omp_threads": os.environ.get("OMP_NUM_THREADS")}

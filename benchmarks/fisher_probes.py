@@ -56,6 +56,7 @@ def main() -> None:
     args = ap.parse_args()
 
     from hpgs_ns.atomic_write import write_json_atomic
+    from hpgs_ns.rounds import SelectionRounds
     from hpgs_ns.selectors.fisher import FisherSelectorConfig
 
     dm, model, step = load_run(args.run)
@@ -68,7 +69,7 @@ def main() -> None:
 
     def scores(k: int, seed: int, view_batch: int = view_batches[0], scale: float = default.resolution_scale,
                factor: int = default.train_probe_factor) -> Dict[int, float]:
-        ctx = dm.selection_context(step, model)
+        ctx = SelectionRounds(dm, model, selector=FisherSelectorConfig().setup()).context(step)
         ctx.generator = torch.Generator().manual_seed(seed)
         ctx.num_to_pick = 1
         config = FisherSelectorConfig(probes=k, view_batch=view_batch, resolution_scale=scale, train_probe_factor=factor)

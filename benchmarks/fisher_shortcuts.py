@@ -34,7 +34,7 @@ def train_synthetic(layout: str, steps: int, folder: Path):
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
     from conftest import run_training, short_config
 
-    from hpgs_ns.synthetic_scene import make_scene
+    from hpgs_ns.scenes.synthetic import make_scene
 
     # Seeded as ns-train seeds with --machine.seed 0 (run_training alone does not).
     random.seed(0)
@@ -59,6 +59,7 @@ def main() -> None:
     args = ap.parse_args()
 
     from hpgs_ns.atomic_write import write_json_atomic
+    from hpgs_ns.rounds import SelectionRounds
     from hpgs_ns.selectors.fisher import FisherSelectorConfig
 
     with tempfile.TemporaryDirectory() as tmp:
@@ -66,7 +67,7 @@ def main() -> None:
         cuda = torch.cuda.is_available()
 
         def one_round(combo, seed: int):
-            ctx = dm.selection_context(step, model)
+            ctx = SelectionRounds(dm, model, selector=FisherSelectorConfig().setup()).context(step)
             ctx.generator, ctx.num_to_pick = torch.Generator().manual_seed(seed), 1
             cfg = FisherSelectorConfig(probes=args.probes, **dict(zip(SHORTCUTS, combo)))
             if cuda:

@@ -37,9 +37,9 @@ def main() -> None:
         if dev.type == "cuda":
             torch.cuda.synchronize()
         t = time.perf_counter()
-        cov = cpu_raster._quat_scale_to_covar(quats, scales)
-        out = cpu_raster._project(means, cov, vm, K, 128, 96, 0.3, False)
-        col = cpu_raster._sh_to_color(3, means, coeffs)
+        cov = cpu_raster.quat_scale_to_covar(quats, scales)
+        out = cpu_raster.project(means, cov, vm, K, 128, 96, 0.3, False)
+        col = cpu_raster.sh_to_color(3, means, coeffs)
         (out["means2d"].sum() + out["conics"].sum() + col.sum()).backward()
         if dev.type == "cuda":
             torch.cuda.synchronize()

@@ -7,11 +7,12 @@ on POSIX, so the target holds either its old or its new content. (The standard l
 from __future__ import annotations
 
 import contextlib
+import csv
 import json
 import os
 import tempfile
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Dict, Iterator, Sequence
 
 
 @contextlib.contextmanager
@@ -42,3 +43,32 @@ def write_text_atomic(path: Path, text: str) -> Path:
 
 def write_json_atomic(path: Path, payload: Any, indent: int = 2) -> Path:
     return write_text_atomic(path, json.dumps(payload, indent=indent) + "\n")
+
+
+def write_csv_atomic(path: Path, fieldnames: Sequence[str], rows: Sequence[Dict[str, object]]) -> Path:
+    """A CSV with a header, written to a temporary file, fsynced, then renamed over `path` (and the rename made
+    durable): a labelling session confirms an answer only after this returns. Keys not in `fieldnames` are
+    ignored."""
+    path = Path(path)
+    with atomic_path(path) as tmp, open(tmp, "w", newline="", encoding="utf-8") as f:
+        writer = csv.DictWriter(f, fieldnames=list(fieldnames), extrasaction="ignore")
+        writer.writeheader()
+        writer.writerows(rows)
+        f.flush()
+        os.fsync(f.fileno())
+    _fsync_dir(path.parent)
+    return path
+
+
+def _fsync_dir(directory: Path) -> None:
+    """Make a rename durable (POSIX); a no-op where directories cannot be opened."""
+    try:
+        fd = os.open(directory, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)

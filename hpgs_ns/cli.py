@@ -14,9 +14,9 @@ import tyro
 # subcommand name -> "module:DataclassName"
 COMMANDS = {
     "demo": "hpgs_ns.demo:Demo",
-    "make-scene": "hpgs_ns.synthetic_scene:MakeScene",
-    "collect": "hpgs_ns.collect:Collect",
-    "bench": "hpgs_ns.bench:Bench",
+    "make-scene": "hpgs_ns.scenes.synthetic:MakeScene",
+    "collect": "hpgs_ns.preference.collect:Collect",
+    "bench": "hpgs_ns.bench.runs:Bench",
     "train-pref": "hpgs_ns.preference.train:TrainPref",
     "eval-pref": "hpgs_ns.preference.evaluate:EvalPref",
     "label": "hpgs_ns.preference.label_server:Label",

@@ -52,7 +52,9 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-__all__ = ["rasterization", "rasterize_pairs", "UnsupportedArgumentError"]
+__all__ = [
+    "rasterization", "rasterize_pairs", "project", "quat_scale_to_covar", "sh_bases", "sh_to_color", "UnsupportedArgumentError",
+]
 
 ALPHA_MAX = 0.999  # alpha clamp (gsplat: min(0.999f, ...))
 ALPHA_MIN = 1.0 / 255.0  # contributions below this alpha are skipped
@@ -90,7 +92,7 @@ def _mm_broadcast(a: Tensor, b: Tensor) -> Tensor:
     return out
 
 
-def _quat_scale_to_covar(quats: Tensor, scales: Tensor) -> Tensor:
+def quat_scale_to_covar(quats: Tensor, scales: Tensor) -> Tensor:
     """Covariance R S S^T R^T from (unnormalised, wxyz) quaternions [..., 4] and scales [..., 3] -> [..., 3, 3]."""
     q = quats * torch.rsqrt((quats * quats).sum(-1, keepdim=True))
     w, x, y, z = q.unbind(-1)
@@ -121,7 +123,7 @@ class _SqrtCompensation(torch.autograd.Function):
         return g * 0.5 / (y + 1e-6)
 
 
-def _project(
+def project(
     means: Tensor,  # [..., 3] world
     covars: Tensor,  # [..., 3, 3] world
     viewmats: Tensor,  # [..., 4, 4] world-to-camera
@@ -182,7 +184,7 @@ def _project(
 # ----------------------------------------------------------------------------------------------------------------
 
 
-def _sh_bases(degree: int, dirs: Tensor) -> Tensor:
+def sh_bases(degree: int, dirs: Tensor) -> Tensor:
     """Real SH bases up to `degree` (0..4) at the directions dirs [M, 3] (not normalised) -> [M, (degree+1)^2]."""
     bases = [torch.full_like(dirs[..., 0], 0.2820947917738781)]
     if degree >= 1:
@@ -221,10 +223,10 @@ def _sh_bases(degree: int, dirs: Tensor) -> Tensor:
     return torch.stack(bases, -1)
 
 
-def _sh_to_color(degree: int, dirs: Tensor, coeffs: Tensor) -> Tensor:
+def sh_to_color(degree: int, dirs: Tensor, coeffs: Tensor) -> Tensor:
     """dirs [M, 3], coeffs [M, K, 3] with (degree+1)^2 <= K -> colors [M, 3] (before the +0.5 and clamp)."""
     k = (degree + 1) ** 2
-    return _mm(_sh_bases(degree, dirs)[:, None, :], coeffs[:, :k, :])[:, 0]
+    return _mm(sh_bases(degree, dirs)[:, None, :], coeffs[:, :k, :])[:, 0]
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -704,12 +706,12 @@ def rasterization(
             ok &= _row_finite(quats) & _row_finite(scales) & torch.isfinite(qn) & (qn > 0)
             safe_q = torch.where(ok[:, None], quats, torch.tensor([1.0, 0, 0, 0], dtype=dtype, device=device))
             safe_s = torch.where(ok[:, None], scales, 0.0)
-            cov_w = _quat_scale_to_covar(safe_q, safe_s)
+            cov_w = quat_scale_to_covar(safe_q, safe_s)
         else:
             ok &= _row_finite(covars)
             cov_w = torch.where(ok[:, None, None], covars, 0.0)
         safe_means = torch.where(ok[:, None], means, 0.0)
-        proj = _project(safe_means[None], cov_w[None], viewmats[:, None], Ks[:, None], width, height, eps2d,
+        proj = project(safe_means[None], cov_w[None], viewmats[:, None], Ks[:, None], width, height, eps2d,
                         camera_model == "ortho", radius_floor=0.1 if packed else 0.01)
         z, radius, m2 = proj["depths"], proj["radius"], proj["means2d"]
         valid = ok[None, :] & _row_finite(viewmats)[:, None]
@@ -732,8 +734,8 @@ def rasterization(
         return x[gids]
 
     means_v = gather(means)
-    cov_v = _quat_scale_to_covar(gather(quats), gather(scales)) if covars is None else covars[gids]
-    proj = _project(means_v, cov_v, viewmats[cids], Ks[cids], width, height, eps2d, camera_model == "ortho")
+    cov_v = quat_scale_to_covar(gather(quats), gather(scales)) if covars is None else covars[gids]
+    proj = project(means_v, cov_v, viewmats[cids], Ks[cids], width, height, eps2d, camera_model == "ortho")
     means2d_v, depths_v, conics_v = proj["means2d"], proj["depths"], proj["conics"]
     opac_v = opacities[gids]
     if rasterize_mode == "antialiased":
@@ -745,7 +747,7 @@ def rasterization(
         campos = torch.inverse(viewmats)[:, :3, 3]  # [C, 3], differentiable like gsplat's torch.inverse
         dirs = means_v - campos[cids]
         coeffs = colors[cids, gids] if per_camera_colors else colors[gids]
-        colors_v = torch.clamp_min(_sh_to_color(sh_degree, dirs, coeffs) + 0.5, 0.0)
+        colors_v = torch.clamp_min(sh_to_color(sh_degree, dirs, coeffs) + 0.5, 0.0)
     if render_mode in ("RGB+D", "RGB+ED"):
         colors_v = torch.cat([colors_v, depths_v[:, None]], -1)
     elif render_mode in ("D", "ED"):

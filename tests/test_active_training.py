@@ -70,7 +70,7 @@ def photometric_error(trainer) -> float:
     """Mean L1 of full-resolution eval-mode renders of the first 6 active views against their photos."""
     dm, model = trainer.pipeline.datamanager, trainer.pipeline.model
     views = sorted(dm.active)[:6]
-    renders = dm.render_views(model, views)
+    renders = model.render_views(dm.train_dataset.cameras[torch.tensor(views)])
     errors = [(r - dm.cached_train[i]["image"].float().div(255)).abs().mean() for r, i in zip(renders, views)]
     return float(torch.stack(errors).mean())
 

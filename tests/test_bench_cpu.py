@@ -8,10 +8,9 @@ import math
 
 import pytest
 
-from hpgs_ns.bench import (
-    Bench, device_counts, fisherrf_schedule, load_results, markdown_table, resolve_scenes, summed_work, train_args,
-    work_table,
-)
+from hpgs_ns.bench.protocols import fisherrf_schedule
+from hpgs_ns.bench.report import device_counts, load_results, markdown_table, work_table
+from hpgs_ns.bench.runs import Bench, resolve_scenes, summed_work, train_args
 
 KEYS = {
     "scene", "protocol", "selector", "seed", "steps", "test", "psnr_per_round", "wall_seconds", "selection_seconds",

@@ -18,8 +18,9 @@ from pathlib import Path
 
 import pytest
 
-from hpgs_ns.bench import Bench, load_results, markdown_table
-from hpgs_ns.executors import ExecutorConfig, LocalExecutor, RayExecutor, SlurmExecutor
+from hpgs_ns.bench.report import load_results, markdown_table
+from hpgs_ns.bench.runs import Bench
+from hpgs_ns.bench.executors import ExecutorConfig, LocalExecutor, RayExecutor, SlurmExecutor
 
 REPO = Path(__file__).resolve().parent.parent
 # 4 runs (2 selectors x 2 seeds, no reference rows) of 15 CPU steps on the 64x48 ring scene.
@@ -81,7 +82,7 @@ def test_missing_packages_say_how_to_install(monkeypatch):
 
 
 def test_local_executor_pins_one_run_per_gpu(monkeypatch):
-    monkeypatch.setattr("hpgs_ns.executors.visible_gpus", lambda: ["3", "5"])
+    monkeypatch.setattr("hpgs_ns.bench.executors.visible_gpus", lambda: ["3", "5"])
     lock, busy, seen = threading.Lock(), set(), []
 
     def fake_run(item, extra_env):

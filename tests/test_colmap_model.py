@@ -11,13 +11,13 @@ import numpy as np
 import pytest
 from nerfstudio.data.utils import colmap_parsing_utils as colmap_utils
 
-from hpgs_ns.colmap_model import model_file, read_images, read_points3D, write_images
-from hpgs_ns.stress import PoseNoise, StressConfig, perturbed_copy, split_names
+from hpgs_ns.scenes.colmap_model import model_file, read_images, read_points3D, write_images
+from hpgs_ns.bench.stress import PoseNoise, StressConfig, perturbed_copy, split_names
 
 
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory) -> Path:
-    from hpgs_ns.synthetic_scene import make_scene
+    from hpgs_ns.scenes.synthetic import make_scene
 
     return make_scene(tmp_path_factory.mktemp("colmap") / "ring", layout="ring", num_cameras=16, width=32, height=24, num_points=300, seed=0)
 

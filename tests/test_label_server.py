@@ -11,9 +11,11 @@ import signal
 import subprocess
 import sys
 import threading
+import urllib.error
 import urllib.request
 from http.server import ThreadingHTTPServer
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 import pytest
@@ -80,10 +82,32 @@ def _start_server(label_dir: Path) -> tuple:
     return proc, match.group(0)
 
 
-def _post(url: str, body: dict) -> dict:
-    req = urllib.request.Request(url, json.dumps(body).encode(), {"Content-Type": "application/json"})
+def _post(url: str, body: dict, headers: Optional[dict] = None) -> dict:
+    req = urllib.request.Request(url, json.dumps(body).encode(), {"Content-Type": "application/json", **(headers or {})})
     with urllib.request.urlopen(req, timeout=10) as r:
         return json.loads(r.read())
+
+
+def test_cross_site_posts_and_foreign_hosts_are_refused(label_dir):
+    proc, url = _start_server(label_dir)
+    before = (label_dir / "pairs.csv").read_bytes()
+    try:
+        for headers in ({"Origin": "http://evil.example"}, {"Origin": "null"}, {"Host": "evil.example"}):
+            with pytest.raises(urllib.error.HTTPError) as err:
+                _post(url + "api/label", {"id": 0, "value": "1"}, headers)
+            assert err.value.code == 403, headers
+        with pytest.raises(urllib.error.HTTPError) as err:  # DNS rebinding: reading through another name
+            urllib.request.urlopen(urllib.request.Request(url + "api/state", headers={"Host": "evil.example:80"}), timeout=10)
+        assert err.value.code == 403
+        assert (label_dir / "pairs.csv").read_bytes() == before
+        # the page itself (same origin) still labels
+        assert _post(url + "api/label", {"id": 0, "value": "1"}, {"Origin": url.rstrip("/")})["labelled"] == 1
+    finally:
+        proc.kill()
+        proc.wait(10)
+        proc.stdout.close()
+        proc.stderr.close()
+    assert _labels(label_dir / "pairs.csv")[0] == (1, False)
 
 
 def test_server_survives_kill_9_with_every_confirmed_label(label_dir):

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from hpgs_ns.cpu_raster import rasterization
-from hpgs_ns.pair_render import render_pairs, sh_squared_gradients
+from hpgs_ns.render.pair_render import Splat, render_pairs, sh_squared_gradients
 from hpgs_ns.selectors.fisher import FisherSelectorConfig
 
 torch.set_num_threads(1)
@@ -29,6 +29,14 @@ def random_splat(n: int = 300, sh_degree: int = 1, seed: int = 0):
     }
     config = SimpleNamespace(sh_degree=sh_degree, sh_degree_interval=1, rasterize_mode="classic")
     return SimpleNamespace(gauss_params=params, config=config, step=10, background_color=torch.tensor([0.1, 0.2, 0.3], dtype=torch.float64))
+
+
+def as_splat(model, backend: str = "cpu") -> Splat:
+    """What `HpgsSplatfactoModel.splat()` returns, for the stand-in model above."""
+    c = model.config
+    degree = min(model.step // c.sh_degree_interval, c.sh_degree) if c.sh_degree > 0 else None
+    return Splat(params=model.gauss_params, sh_degree=degree, background=model.background_color,
+                 antialiased=c.rasterize_mode == "antialiased", backend=backend)
 
 
 def ring_cameras(c: int = 3, width: int = 24, height: int = 18):
@@ -66,7 +74,7 @@ def test_pair_render_matches_the_rasterizer(sh_degree):
         model.config.sh_degree = 0
         model.gauss_params["features_rest"] = model.gauss_params["features_rest"][:, :0]
     viewmats, Ks, W, H = ring_cameras()
-    pr = render_pairs(model, viewmats, Ks, W, H, (), backend="cpu")
+    pr = render_pairs(as_splat(model, "cpu"), viewmats, Ks, W, H, ())
     if sh_degree == 0:
         p = model.gauss_params
         img, alpha, _ = rasterization(p["means"], p["quats"], torch.exp(p["scales"]), torch.sigmoid(p["opacities"]).squeeze(-1),
@@ -85,7 +93,7 @@ def test_one_backward_gives_each_views_own_gradient():
     model = random_splat()
     viewmats, Ks, W, H = ring_cameras()
     names = ("means", "features_dc", "features_rest", "scales", "opacities")
-    pr = render_pairs(model, viewmats, Ks, W, H, names, backend="cpu")
+    pr = render_pairs(as_splat(model, "cpu"), viewmats, Ks, W, H, names)
     eps = torch.randint(0, 2, pr.image.shape, generator=torch.Generator().manual_seed(1)).double() * 2 - 1
     grads = torch.autograd.grad(pr.image, [pr.leaves[n] for n in names], grad_outputs=eps)
     for c in range(3):
@@ -105,8 +113,8 @@ def test_sh_squared_gradients_from_the_colour_gradient_equal_autograds(interval,
     model.config.sh_degree_interval = interval  # step 10: active degree 10 // interval, at most 3
     viewmats, Ks, W, H = ring_cameras()
     names = ("means", "features_dc", "features_rest", "scales", "opacities")
-    full = render_pairs(model, viewmats, Ks, W, H, names, backend="cpu")
-    fast = render_pairs(model, viewmats, Ks, W, H, names, backend="cpu", sh_via_color=True)
+    full = render_pairs(as_splat(model, "cpu"), viewmats, Ks, W, H, names)
+    fast = render_pairs(as_splat(model, "cpu"), viewmats, Ks, W, H, names, sh_via_color=True)
     assert torch.equal(full.image, fast.image) and fast.sh_bases.shape[1] == (degree + 1) ** 2
     assert not fast.leaves["features_rest"].requires_grad
     eps = torch.randint(0, 2, full.image.shape, generator=torch.Generator().manual_seed(3)).double() * 2 - 1
@@ -143,8 +151,8 @@ def test_linearized_gradients_equal_autograds(sh_degree, rotations, mode):
     model.gauss_params["features_dc"] = model.gauss_params["features_dc"] - 0.4  # some colours clamped at 0
     viewmats, Ks, W, H = ring_cameras()
     names = ["means", "features_dc", "features_rest", "scales", "opacities"] + (["quats"] if rotations else [])
-    full = render_pairs(model, viewmats, Ks, W, H, names, backend="cpu")
-    lin = render_pairs(model, viewmats, Ks, W, H, names, backend="cpu", linearize=True)
+    full = render_pairs(as_splat(model, "cpu"), viewmats, Ks, W, H, names)
+    lin = render_pairs(as_splat(model, "cpu"), viewmats, Ks, W, H, names, linearize=True)
     assert torch.allclose(lin.image, full.image, rtol=0, atol=1e-12)
     assert torch.equal(lin.camera_ids, full.camera_ids) and not lin.leaves["means"].requires_grad
     assert lin.jacobian.shape == (full.camera_ids.numel(), 9, 7 + 4 * rotations + 3 * (sh_degree == 0))
@@ -173,8 +181,8 @@ def test_drop_hidden_leaves_out_only_pairs_with_no_pixel():
     model.gauss_params["scales"] = model.gauss_params["scales"] + math.log(4.0)  # several pixels wide: overlap
     viewmats, Ks, W, H = ring_cameras()
     names = ("means", "features_dc", "features_rest", "scales", "opacities")
-    full = render_pairs(model, viewmats, Ks, W, H, names, backend="cpu")
-    kept = render_pairs(model, viewmats, Ks, W, H, names, backend="cpu", drop_hidden=True)
+    full = render_pairs(as_splat(model, "cpu"), viewmats, Ks, W, H, names)
+    kept = render_pairs(as_splat(model, "cpu"), viewmats, Ks, W, H, names, drop_hidden=True)
     assert kept.pairs_in_frustum == full.camera_ids.numel() > 1.2 * kept.camera_ids.numel() > 0  # ~30% hidden
     assert torch.allclose(kept.image, full.image, rtol=0, atol=1e-12)
     eps = torch.randint(0, 2, full.image.shape, generator=torch.Generator().manual_seed(5)).double() * 2 - 1
@@ -203,7 +211,7 @@ def test_gsplat_backend_matches_the_cpu_twin():
     names = ("means", "features_dc", "scales", "opacities")
     out = {}
     for backend in ("gsplat", "cpu"):
-        pr = render_pairs(model, viewmats, Ks, W, H, names, backend=backend)
+        pr = render_pairs(as_splat(model, backend), viewmats, Ks, W, H, names)
         eps = torch.randint(0, 2, pr.image.shape, generator=torch.Generator().manual_seed(2)).cuda().float() * 2 - 1
         grads = torch.autograd.grad(pr.image, [pr.leaves[n] for n in names], grad_outputs=eps)
         out[backend] = (pr.image, grads)
@@ -229,7 +237,7 @@ def test_fisher_shortcuts_on_gsplat_keep_the_pair_diagonal():
     selector = FisherSelectorConfig(mode="exact").setup()  # every pixel-channel: no probe noise between the two
     diag = []
     for fast in (False, True):
-        pr = render_pairs(model, viewmats, Ks, W, H, names, backend="gsplat", sh_via_color=fast, drop_hidden=fast,
+        pr = render_pairs(as_splat(model, "gsplat"), viewmats, Ks, W, H, names, sh_via_color=fast, drop_hidden=fast,
                           linearize=fast)
         total = {n: torch.zeros_like(model.gauss_params[n]) for n in names}
         for n, sq in selector.pair_squares(pr, 1, torch.Generator(device="cuda")).items():

@@ -50,14 +50,14 @@ def one_sided(tiny_scene, tmp_path_factory):
 
 
 def pick(trainer, selector_config, name: str, k: int = 1):
-    dm = trainer.pipeline.datamanager
-    saved = (list(dm.active), list(dm.history), dm.selector, dm.config.views_per_round, dm.config.selector)
-    dm.selector, dm.config.views_per_round = selector_config.setup(), k
+    dm, rounds = trainer.pipeline.datamanager, trainer.pipeline.rounds
+    saved = (list(dm.active), list(dm.history), rounds.selector, dm.config.views_per_round, dm.config.selector)
+    rounds.selector, dm.config.views_per_round = selector_config.setup(), k
     try:
-        selection = dm.run_round(1000 + len(dm.history), trainer.pipeline.model)
+        selection = rounds.run_round(1000 + len(dm.history))
         return [dm.image_names[i] for i in selection.indices], selection
     finally:
-        dm.active, dm.history, dm.selector, dm.config.views_per_round, dm.config.selector = saved
+        dm.active, dm.history, rounds.selector, dm.config.views_per_round, dm.config.selector = saved
 
 
 def assert_unseen_side(names, az):
@@ -134,13 +134,13 @@ def test_random_follows_seed_and_empty_pool_ends_selection(one_sided):
     a, _ = pick(trainer, RandomSelectorConfig(), "random", k=3)
     b, _ = pick(trainer, RandomSelectorConfig(), "random", k=3)
     assert a == b and len(set(a)) == 3
-    dm = trainer.pipeline.datamanager
+    dm, rounds = trainer.pipeline.datamanager, trainer.pipeline.rounds
     saved = list(dm.active)
     dm.active = list(range(len(dm.train_dataset)))  # pool exhausted
     try:
-        assert not dm.is_round_step(2 * dm.config.select_every)
+        assert not rounds.is_round_step(2 * dm.config.select_every)
         with pytest.raises(SelectionError, match="no withheld views"):
-            dm.run_round(123, trainer.pipeline.model)
+            rounds.run_round(123)
     finally:
         dm.active = saved
 
@@ -164,12 +164,12 @@ def spearman(a, b) -> float:
 def test_fisher_probe_ranking_matches_exact_at_default_k(one_sided):
     """K=16 Rademacher probes rank candidates like the exact per-pixel diagonal (16x12 renders)."""
     trainer, az = one_sided
-    dm, model = trainer.pipeline.datamanager, trainer.pipeline.model
+    dm, rounds = trainer.pipeline.datamanager, trainer.pipeline.rounds
     active = sorted(dm.active)[::4][:2]
     candidates = [i for i in range(len(dm.train_dataset)) if i not in dm.active][:8]
     scores = {}
     for mode in ("exact", "probe"):
-        ctx = dm.selection_context(500, model)
+        ctx = rounds.context(500)
         ctx.active, ctx.candidates, ctx.num_to_pick = active, candidates, 1
         selector = FisherSelectorConfig(mode=mode, resolution_scale=0.25).setup()
         scores[mode] = selector.select(ctx).scores

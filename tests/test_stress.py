@@ -14,13 +14,14 @@ from conftest import run_training, short_config
 from PIL import Image
 
 from hpgs_ns.dataparser import MipNerf360DataParserConfig, SceneDataError, _make_downscaled_folder, image_problem
-from hpgs_ns.stress import Corrupt, Exposure, PoseNoise, StressConfig, perturbed_copy, split_names, stress_table
+from hpgs_ns.bench.report import stress_table
+from hpgs_ns.bench.stress import Corrupt, Exposure, PoseNoise, StressConfig, perturbed_copy, split_names
 
 
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory) -> Path:
     """A 40-camera, 64x48 `ring` scene with an `images_2/` folder (35 training, 5 test views)."""
-    from hpgs_ns.synthetic_scene import make_scene
+    from hpgs_ns.scenes.synthetic import make_scene
 
     path = make_scene(tmp_path_factory.mktemp("stress") / "ring", layout="ring", num_cameras=40, width=64, height=48, num_points=1500, seed=0)
     (path / "images_2").mkdir()
@@ -199,7 +200,7 @@ def test_stress_table_pairs_each_perturbed_run_with_the_same_seeds_clean_run():
 
 def test_bench_stress_runs_each_scene_clean_and_perturbed(scene, tmp_path, monkeypatch):
     """`hpgs bench --stress` wiring, with training replaced by a stub that records which scene it was given."""
-    from hpgs_ns import bench as bench_module
+    from hpgs_ns.bench import runs as bench_module
 
     def fake_run(bench, scene_dir, protocol, name, seed, env=None):
         parse(scene_dir)  # the real dataparser must accept the perturbed copy

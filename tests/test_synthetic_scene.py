@@ -1,4 +1,4 @@
-"""hpgs_ns.synthetic_scene: the scene loads in nerfstudio's stock COLMAP parser with exact geometry, colours and
+"""hpgs_ns.scenes.synthetic: the scene loads in nerfstudio's stock COLMAP parser with exact geometry, colours and
 tracks; visibility and hidden objects are right; generation is deterministic, atomic and rejects bad arguments."""
 
 from __future__ import annotations

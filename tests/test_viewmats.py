@@ -2,7 +2,7 @@
 
 import torch
 
-from hpgs_ns.viewmats import world_to_camera
+from hpgs_ns.render.viewmats import world_to_camera
 
 
 def random_poses(n: int, generator: torch.Generator) -> torch.Tensor:

@@ -11,6 +11,10 @@ the worse image has the lower psnr/ssim or the higher lpips) without a browser, 
 probability `--noise` (seeded): simulated labellers for experiments.
 
 `--order uncertain --model M` shows first the pairs on which the model's p(Image_1 worse) is nearest 1/2.
+
+Only this page may use the server: a request whose `Host` is not 127.0.0.1/localhost at the server's port (DNS
+rebinding), or a POST whose `Origin` is another site (any page open in the same browser could otherwise post
+labels), is refused with 403 and changes nothing.
 """
 
 from __future__ import annotations
@@ -31,7 +35,8 @@ import tyro
 from typing_extensions import Annotated
 
 from hpgs_ns.preference.model import CheckpointError
-from hpgs_ns.preference.pairs import COLUMNS, SKIPPED, PairsError, pairs_reader, parse_flag, write_rows_atomic
+from hpgs_ns.atomic_write import write_csv_atomic
+from hpgs_ns.preference.pairs import COLUMNS, SKIPPED, PairsError, pairs_reader, parse_flag
 
 PAGE = Path(__file__).resolve().parent / "static" / "label.html"
 LABEL, IMAGE_1, IMAGE_2 = COLUMNS[2], COLUMNS[0], COLUMNS[1]
@@ -81,7 +86,7 @@ class LabelBook:
                 "remaining": len(self.rows) - labelled - skipped, "pair": pair, "can_undo": bool(self.history)}
 
     def save(self) -> None:
-        write_rows_atomic(self.path, self.fields, self.rows)
+        write_csv_atomic(self.path, self.fields, self.rows)
 
     def answer(self, i: int, value: str) -> None:
         """value "1" (Image_1 worse), "0" (Image_2 worse) or "skip"; saved before returning."""
@@ -185,7 +190,22 @@ def make_handler(book: LabelBook):
         def _json(self, obj: dict, code: int = 200) -> None:
             self._send(code, json.dumps(obj).encode(), "application/json")
 
+        def _foreign(self, post: bool) -> Optional[str]:
+            """Why a request may not come from this page (refused), or None."""
+            port = self.server.server_address[1]
+            hosts = {f"127.0.0.1:{port}", f"localhost:{port}"}
+            host = self.headers.get("Host", "")
+            if host not in hosts:
+                return f"Host {host!r} is not this server"
+            origin = self.headers.get("Origin")
+            # Browsers send Origin with every cross-site POST; a client without one (curl, a script) is local.
+            if post and origin is not None and origin not in {f"http://{h}" for h in hosts}:
+                return f"cross-site request from {origin} refused"
+            return None
+
         def do_GET(self):
+            if (why := self._foreign(post=False)) is not None:
+                return self._json({"error": why}, 403)
             if self.path in ("/", "/index.html"):
                 return self._send(200, PAGE.read_bytes(), "text/html; charset=utf-8")
             if self.path == "/api/state":
@@ -202,6 +222,8 @@ def make_handler(book: LabelBook):
             self._json({"error": f"not found: {self.path}"}, 404)
 
         def do_POST(self):
+            if (why := self._foreign(post=True)) is not None:
+                return self._json({"error": why}, 403)
             try:
                 length = int(self.headers.get("Content-Length") or 0)
                 body = json.loads(self.rfile.read(length) or b"{}")

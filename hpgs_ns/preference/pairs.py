@@ -12,12 +12,11 @@ import os
 import random
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Dict, Iterable, List, Optional, Sequence, Set, Tuple
+from typing import Iterable, List, Optional, Sequence, Set, Tuple
 
 import numpy as np
 import torch
 
-from hpgs_ns.atomic_write import atomic_path
 from hpgs_ns.errors import UserError
 
 COLUMNS = ("Image_1", "Image_2", "Human Preference")
@@ -107,32 +106,6 @@ def read_usable_pairs(csv_paths: Iterable[Path], check_images: bool = True) -> L
                     raise PairsError(f"{image}: image named in a pairs CSV is missing; names are relative to the "
                                      "CSV's folder: restore the file or remove its rows")
     return pairs
-
-
-def write_rows_atomic(csv_path: Path, fieldnames: Sequence[str], rows: Sequence[Dict[str, object]]) -> None:
-    """Write a CSV to a temporary file in the same folder, fsync, then rename over `csv_path`."""
-    csv_path = Path(csv_path)
-    with atomic_path(csv_path) as tmp, open(tmp, "w", newline="", encoding="utf-8") as f:
-        writer = csv.DictWriter(f, fieldnames=list(fieldnames), extrasaction="ignore")
-        writer.writeheader()
-        writer.writerows(rows)
-        f.flush()
-        os.fsync(f.fileno())
-    _fsync_dir(csv_path.parent)
-
-
-def _fsync_dir(directory: Path) -> None:
-    """Make a rename durable (POSIX); a no-op where directories cannot be opened."""
-    try:
-        fd = os.open(directory, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
 
 
 def load_image(path: Path) -> torch.Tensor:

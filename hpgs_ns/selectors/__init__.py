@@ -1,22 +1,24 @@
-"""View selectors. One file per selector; this registry maps `--pipeline.datamanager.selector` names to configs."""
+"""View selectors: one file per selector (a `SelectorConfig` and a class with `select(context) -> Selection`).
 
-from hpgs_ns.selectors.base import Selection, SelectionContext, SelectionError, Selector, check_selection
+`registry` maps `--pipeline.datamanager.selector` names to their configs: the built-in ones, and those other
+packages register through the `hpgs_ns.selectors` entry point group.
+"""
+
+from hpgs_ns.selectors.base import (
+    Selection, SelectionContext, SelectionError, Selector, SelectorConfig, check_selection,
+)
 from hpgs_ns.selectors.condorcet import CondorcetSelectorConfig
 from hpgs_ns.selectors.farthest import FarthestSelectorConfig
 from hpgs_ns.selectors.fisher import FisherSelectorConfig
 from hpgs_ns.selectors.hpgs import HpgsSelectorConfig
 from hpgs_ns.selectors.random_views import RandomSelectorConfig
-
-SELECTOR_CONFIGS = {
-    "random": RandomSelectorConfig,
-    "farthest": FarthestSelectorConfig,
-    "fisher": FisherSelectorConfig,
-    "hpgs": HpgsSelectorConfig,
-    "condorcet": CondorcetSelectorConfig,
-}
+from hpgs_ns.selectors.registry import BUILTIN_SELECTORS, ENTRY_POINT_GROUP, selector_config, selector_names
 
 __all__ = [
-    "SELECTOR_CONFIGS",
+    "BUILTIN_SELECTORS",
+    "ENTRY_POINT_GROUP",
+    "selector_config",
+    "selector_names",
     "RandomSelectorConfig",
     "FarthestSelectorConfig",
     "FisherSelectorConfig",
@@ -26,5 +28,6 @@ __all__ = [
     "SelectionContext",
     "SelectionError",
     "Selector",
+    "SelectorConfig",
     "check_selection",
 ]

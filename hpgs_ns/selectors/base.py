@@ -1,17 +1,19 @@
 """The selector interface: one typed context in, the chosen candidate indices (and their scores) out.
 
 The datamanager owns *which views are active*; a selector owns *how to score*; the model owns *rendering*.
-A selector never edits the datamanager's lists: it reads the context and returns a `Selection`.
+A selector never edits the datamanager's lists: it reads the context and returns a `Selection`. Each selector's
+options are a `SelectorConfig` whose `setup()` returns the selector; `hpgs_ns.selectors.registry` maps names to
+them.
 """
 
 from __future__ import annotations
 
-import contextlib
 from dataclasses import dataclass, field
 from typing import Callable, Dict, List, Optional, Protocol, Sequence
 
 import torch
 from nerfstudio.cameras.cameras import Cameras
+from nerfstudio.configs.base_config import InstantiateConfig
 from nerfstudio.models.base_model import Model
 
 from hpgs_ns.errors import UserError
@@ -45,7 +47,8 @@ class SelectionContext:
     image_names: List[str]
     """File names of the training-split images, by index."""
     model: Model
-    """The splat being trained (read-only for selectors; use `render` for images)."""
+    """The splat being trained (read-only for selectors): `render` for images; the hpgs model's `splat()`,
+    `eval_mode()` and `active_sh_degree` for its tensors."""
     render: RenderFn
     """Renders views of the current splat (see `RenderFn`)."""
     generator: torch.Generator
@@ -74,6 +77,15 @@ class Selector(Protocol):
         ...
 
 
+@dataclass
+class SelectorConfig(InstantiateConfig):
+    """A selector's options (typed fields become `--pipeline.datamanager.<name>.<option>` flags); `setup()`
+    builds the selector (its `_target`) with them."""
+
+    def setup(self, **kwargs) -> Selector:
+        return super().setup(**kwargs)
+
+
 def check_selection(selection: Selection, context: SelectionContext) -> Selection:
     """Validate a selector's answer: distinct candidates, the right count, finite scores."""
     picked = list(selection.indices)
@@ -86,19 +98,3 @@ def check_selection(selection: Selection, context: SelectionContext) -> Selectio
     if bad:
         raise SelectionError(f"selector produced non-finite scores for views {bad[:5]}")
     return selection
-
-
-@contextlib.contextmanager
-def eval_mode(model):
-    """Render in eval mode (fixed background, full resolution, no densification bookkeeping), then restore the
-    mode and splatfacto's `info` (the densification strategy reads the last *training* render's info)."""
-    was_training = model.training
-    info = getattr(model, "info", None)
-    model.eval()
-    try:
-        yield model
-    finally:
-        model.train(was_training)
-        if info is not None:
-            model.info = info
-

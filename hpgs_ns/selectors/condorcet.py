@@ -15,14 +15,13 @@ from pathlib import Path
 from typing import Optional, Type
 
 import torch
-from nerfstudio.configs.base_config import InstantiateConfig
 
-from hpgs_ns.selectors.base import Selection, SelectionContext, SelectionError
+from hpgs_ns.selectors.base import Selection, SelectionContext, SelectionError, SelectorConfig
 from hpgs_ns.selectors.preference_features import load_preference_model, render_scores
 
 
 @dataclass
-class CondorcetSelectorConfig(InstantiateConfig):
+class CondorcetSelectorConfig(SelectorConfig):
     """Condorcet winner of Bradley-Terry duels between candidates (the one judged worse most often)."""
 
     _target: Type = field(default_factory=lambda: CondorcetSelector)
@@ -52,7 +51,6 @@ class CondorcetSelector:
     def __init__(self, config: CondorcetSelectorConfig) -> None:
         self.config = config
         self.pref = load_preference_model(config.model)
-        self.last_num_duels = 0
 
     def select(self, context: SelectionContext) -> Selection:
         pool = list(context.candidates)
@@ -65,9 +63,8 @@ class CondorcetSelector:
         if not torch.isfinite(s).all():
             raise SelectionError("condorcet: non-finite preference score (NaN in a render or in the model)")
         wins = duel_wins(s)
-        self.last_num_duels = len(pool) * (len(pool) - 1) // 2
         # Most duels judged worse first; the BT score breaks ties in win counts.
         order = sorted(range(len(pool)), key=lambda i: (float(wins[i]), float(s[i])), reverse=True)
         picked = [pool[i] for i in order[: context.num_to_pick]]
-        work["duels"] = self.last_num_duels
+        work["duels"] = len(pool) * (len(pool) - 1) // 2
         return Selection(indices=picked, scores={pool[i]: float(wins[i]) for i in range(len(pool))}, work=work)

@@ -9,16 +9,15 @@ every active view wins.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Type
+from typing import List, Sequence, Type
 
 import torch
-from nerfstudio.configs.base_config import InstantiateConfig
 
-from hpgs_ns.selectors.base import Selection, SelectionContext
+from hpgs_ns.selectors.base import Selection, SelectionContext, SelectorConfig
 
 
 @dataclass
-class FarthestSelectorConfig(InstantiateConfig):
+class FarthestSelectorConfig(SelectorConfig):
     """Farthest camera centre from the active set; viewing direction breaks ties."""
 
     _target: Type = field(default_factory=lambda: FarthestSelector)
@@ -54,3 +53,19 @@ class FarthestSelector:
             chosen_side.append(best)
             pool.remove(best)
         return Selection(indices=picked, scores=scores)
+
+
+def farthest_point_order(points: torch.Tensor, k: int, start: int = 0, chosen: Sequence[int] = ()) -> List[int]:
+    """Greedy farthest-point sampling: `k` indices of `points` [N, 3], each farthest from those already chosen
+    (`chosen`, or `start` when none). FisherRF's initial views (`--pipeline.datamanager.initial-views fps`)."""
+    points = points.double()
+    picked = list(chosen) if chosen else [start]
+    dist = torch.cdist(points, points[picked]).min(dim=1).values
+    out = [] if chosen else [start]
+    while len(out) < k and len(picked) < len(points):
+        dist[picked] = -1
+        nxt = int(torch.argmax(dist))
+        picked.append(nxt)
+        out.append(nxt)
+        dist = torch.minimum(dist, torch.linalg.norm(points - points[nxt], dim=1))
+    return out

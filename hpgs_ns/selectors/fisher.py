@@ -16,9 +16,10 @@ noisy small H_train into a huge weight, so H_train gets `train_probe_factor` tim
 sums over all active views), and lambda_i = reg_lambda + relative_floor * mean(H_train over that parameter
 tensor). `exact` mode back-propagates every pixel-channel (only for tiny images: tests check `probe` against it).
 
-Views are processed `view_batch` at a time through `hpgs_ns.pair_render`: each (view, Gaussian) pair has its own
-copy of the parameters, so one backward pass per probe gives every view of the batch its own gradient, and only
-the Gaussians whose footprint reaches a view are gathered for it (frustum culling). H_train is recomputed every
+Views are processed `view_batch` at a time through `hpgs_ns.render.pair_render` (on the model's `splat()`): each
+(view, Gaussian) pair has its own copy of the parameters, so one backward pass per probe gives every view of the
+batch its own gradient, and only the Gaussians whose footprint reaches a view are gathered for it (frustum
+culling). H_train is recomputed every
 round because densification renumbers the Gaussians. The colour is linear in the SH coefficients, so their
 squared gradients come from each pair's colour gradient d as B_k^2 d^2 (`sh_via_color`) rather than from 48
 back-propagated numbers per pair and probe; with `linearize` a probe back-propagates through the rasterizer only,
@@ -32,19 +33,17 @@ from dataclasses import dataclass, field
 from typing import Dict, Iterator, List, Literal, Sequence, Tuple, Type
 
 import torch
-from nerfstudio.configs.base_config import InstantiateConfig
 from torch.profiler import record_function
 
-from hpgs_ns.model import resolve_rasterizer
-from hpgs_ns.pair_render import PairRender, render_pairs, sh_squared_gradients
-from hpgs_ns.selectors.base import Selection, SelectionContext, SelectionError, eval_mode
-from hpgs_ns.viewmats import world_to_camera
+from hpgs_ns.render.pair_render import PairRender, Splat, render_pairs, sh_squared_gradients
+from hpgs_ns.render.viewmats import world_to_camera
+from hpgs_ns.selectors.base import Selection, SelectionContext, SelectionError, SelectorConfig
 
 FISHER_PARAMS = ("means", "features_dc", "features_rest", "scales", "opacities")
 
 
 @dataclass
-class FisherSelectorConfig(InstantiateConfig):
+class FisherSelectorConfig(SelectorConfig):
     """FisherRF's diagonal-Fisher information gain, computed with Rademacher probes on stock gsplat."""
 
     _target: Type = field(default_factory=lambda: FisherSelector)
@@ -110,7 +109,7 @@ class FisherSelector:
 
     def batches(self, context: SelectionContext, views: Sequence[int]) -> Iterator[ViewBatch]:
         """`views` grouped by rendered size, at most `view_batch` per group."""
-        device = torch.device(context.model.device)
+        device = context.device
         cameras = context.cameras[torch.tensor([int(v) for v in views], dtype=torch.long)]
         if self.config.resolution_scale != 1.0:
             cameras.rescale_output_resolution(self.config.resolution_scale)
@@ -129,11 +128,10 @@ class FisherSelector:
                     height=H,
                 )
 
-    def render(self, context: SelectionContext, batch: ViewBatch) -> PairRender:
-        backend = resolve_rasterizer(getattr(context.model.config, "rasterizer", "auto"))
+    def render(self, context: SelectionContext, splat: Splat, batch: ViewBatch) -> PairRender:
         with torch.enable_grad():
             pr = render_pairs(
-                context.model, batch.viewmats, batch.Ks, batch.width, batch.height, self.param_names(), backend,
+                splat, batch.viewmats, batch.Ks, batch.width, batch.height, self.param_names(),
                 sh_via_color=self.config.sh_via_color, drop_hidden=self.config.drop_hidden, linearize=self.config.linearize,
             )
         full = context.cameras[torch.tensor(batch.views, dtype=torch.long)]
@@ -142,7 +140,7 @@ class FisherSelector:
         self._count("pixels_full_resolution", int((full.width * full.height).sum()))
         self._count("pairs_in_frustum", pr.pairs_in_frustum)
         self._count("pairs_differentiated", pr.camera_ids.numel())
-        self._count("pairs_unculled", len(batch.views) * context.model.num_points)
+        self._count("pairs_unculled", len(batch.views) * splat.num_points)
         return pr
 
     def _count(self, key: str, n: float) -> None:
@@ -187,21 +185,22 @@ class FisherSelector:
 
     # ---- the two quantities ----------------------------------------------------------------------------------
 
-    def diag_hessian(self, context: SelectionContext, views: Sequence[int], probes: int, generator: torch.Generator) -> Dict[str, torch.Tensor]:
+    def diag_hessian(self, context: SelectionContext, splat: Splat, views: Sequence[int], probes: int,
+                     generator: torch.Generator) -> Dict[str, torch.Tensor]:
         """sum over `views` of diag(J_v^T J_v), full size (one entry per Gaussian parameter)."""
-        model = context.model
-        total = {n: torch.zeros_like(model.gauss_params[n]).detach() for n in self.param_names()}
+        total = {n: torch.zeros_like(splat.params[n]) for n in self.param_names()}
         for batch in self.batches(context, views):
-            pr = self.render(context, batch)
+            pr = self.render(context, splat, batch)
             for n, sq in self.pair_squares(pr, probes, generator).items():
                 total[n].index_add_(0, pr.gaussian_ids, sq)
         return total
 
-    def view_scores(self, context: SelectionContext, views: Sequence[int], weights: Dict[str, torch.Tensor], generator: torch.Generator) -> Dict[int, float]:
+    def view_scores(self, context: SelectionContext, splat: Splat, views: Sequence[int], weights: Dict[str, torch.Tensor],
+                    generator: torch.Generator) -> Dict[int, float]:
         """score(v) = sum_i diag(J_v^T J_v)[i] * weights[i] for each of `views`."""
         scores: Dict[int, float] = {}
         for batch in self.batches(context, views):
-            pr = self.render(context, batch)
+            pr = self.render(context, splat, batch)
             gids = pr.gaussian_ids
             per_pair = torch.zeros(gids.shape[0], dtype=pr.image.dtype, device=pr.image.device)
             for n, sq in self.pair_squares(pr, self.config.probes, generator).items():
@@ -225,17 +224,19 @@ class FisherSelector:
         model = context.model
         # Probes are drawn on the model's device (a CPU generator would ship every probe image to the GPU),
         # seeded from the round's generator so a resumed run makes the same choices.
-        generator = torch.Generator(device=torch.device(model.device))
+        generator = torch.Generator(device=context.device)
         generator.manual_seed(int(torch.randint(0, 2**62, (1,), generator=context.generator)))
         picked: List[int] = []
         first_scores: Dict[int, float] = {}
         self.work = {}
-        with eval_mode(model):
+        train_probes = self.config.probes * self.config.train_probe_factor
+        with model.eval_mode():
+            splat = model.splat()
             # Recomputed every round: densification renumbers the Gaussians.
-            h_train = self.diag_hessian(context, context.active, self.config.probes * self.config.train_probe_factor, generator)
+            h_train = self.diag_hessian(context, splat, context.active, train_probes, generator)
             for _ in range(context.num_to_pick):
                 pool = [c for c in context.candidates if c not in picked]
-                scores = self.view_scores(context, pool, self.weights(h_train), generator)
+                scores = self.view_scores(context, splat, pool, self.weights(h_train), generator)
                 bad = [context.image_names[c] for c, s in scores.items() if not math.isfinite(s)]
                 if bad:
                     raise SelectionError(f"fisher score of view {bad[0]} is not finite (the splat has NaN parameters?)")
@@ -245,7 +246,7 @@ class FisherSelector:
                 picked.append(best)
                 if len(picked) < context.num_to_pick:
                     # Greedy batch: the pick's information joins the training side before the next pick.
-                    h_pick = self.diag_hessian(context, [best], self.config.probes * self.config.train_probe_factor, generator)
+                    h_pick = self.diag_hessian(context, splat, [best], train_probes, generator)
                     for name in h_train:
                         h_train[name] += h_pick[name]
         return Selection(indices=picked, scores=first_scores, work=dict(self.work))

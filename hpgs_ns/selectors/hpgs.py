@@ -18,14 +18,13 @@ from pathlib import Path
 from typing import List, Literal, Optional, Sequence, Type
 
 import torch
-from nerfstudio.configs.base_config import InstantiateConfig
 
-from hpgs_ns.selectors.base import Selection, SelectionContext, SelectionError
+from hpgs_ns.selectors.base import Selection, SelectionContext, SelectionError, SelectorConfig
 from hpgs_ns.selectors.preference_features import load_preference_model, render_features
 
 
 @dataclass
-class HpgsSelectorConfig(InstantiateConfig):
+class HpgsSelectorConfig(SelectorConfig):
     """HP-GS: largest cosine distance from the median preference feature of the active views."""
 
     _target: Type = field(default_factory=lambda: HpgsSelector)

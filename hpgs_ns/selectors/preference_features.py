@@ -21,7 +21,10 @@ def load_preference_model(path: Optional[Path], device: str = "cpu"):
         hint = "train one with `hpgs train-pref`" if path != DEFAULT_MODEL else "reinstall hpgs-ns"
         raise SelectionError(f"preference model {path} not found; pass --pipeline.datamanager.hpgs.model PATH or {hint}")
     try:
-        return PreferenceModel.load(path, device=device).eval()
+        # The checkpoint overwrites the modules' random init: fork the RNG so that loading a model (which a
+        # preference selector does at set-up) leaves the run's random stream, and so its splat, unchanged.
+        with torch.random.fork_rng(devices=[]):
+            return PreferenceModel.load(path, device=device).eval()
     except SelectionError:
         raise
     except Exception as err:

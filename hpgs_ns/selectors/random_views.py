@@ -6,13 +6,12 @@ from dataclasses import dataclass, field
 from typing import Type
 
 import torch
-from nerfstudio.configs.base_config import InstantiateConfig
 
-from hpgs_ns.selectors.base import Selection, SelectionContext
+from hpgs_ns.selectors.base import Selection, SelectionContext, SelectorConfig
 
 
 @dataclass
-class RandomSelectorConfig(InstantiateConfig):
+class RandomSelectorConfig(SelectorConfig):
     """Uniformly random candidates, drawn from the datamanager's seeded generator (so `--seed` fixes them)."""
 
     _target: Type = field(default_factory=lambda: RandomSelector)

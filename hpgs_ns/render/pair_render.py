@@ -6,8 +6,9 @@ one backward per view and probe (200 candidates x 16 probes = 3200 launch-bound 
 
 Here the pairs whose footprint reaches a view are found first (no autograd: this is the frustum culling, so a
 view costs only its visible Gaussians), their raw parameters are gathered into leaf tensors [nnz, ...], projected
-in PyTorch (`cpu_raster._project`: gsplat's EWA maths), and composited by gsplat's packed `rasterize_to_pixels`
-(CUDA) or its pure-PyTorch twin `cpu_raster.rasterize_pairs`. One backward pass then gives every pair's gradient:
+in PyTorch (`cpu_raster.project`: gsplat's EWA maths), and composited by gsplat's packed `rasterize_to_pixels`
+(CUDA) or its pure-PyTorch twin `cpu_raster.rasterize_pairs`. The splat comes in as plain tensors (`Splat`, from
+`HpgsSplatfactoModel.splat()`), as gsplat's functions take them. One backward pass then gives every pair's gradient:
 every view's own gradient, for a whole batch of views at once.
 
 With `linearize` the probes stop at the rasterizer: each pair's projected inputs (means2d, conics, opacity,
@@ -24,13 +25,13 @@ is why this is written here.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Dict, List, Sequence, Tuple
+from typing import Dict, List, Optional, Sequence, Tuple
 
 import torch
 from torch import Tensor
 from torch.profiler import record_function  # named ranges in benchmarks/fisher_probes.py --profile
 
-from hpgs_ns.cpu_raster import _project, _quat_scale_to_covar, _sh_bases, _sh_to_color
+from hpgs_ns.cpu_raster import project, quat_scale_to_covar, rasterize_pairs, sh_bases, sh_to_color
 
 SH_PARAMS = ("features_dc", "features_rest")
 NEAR_PLANE = 0.01  # splatfacto's near plane
@@ -39,6 +40,28 @@ TILE_SIZE = 16
 PAIRS_PER_CHUNK = 1 << 22  # (camera, Gaussian) pairs tested at once when culling (bounds memory, not results)
 JACOBIAN_PAIRS_PER_CHUNK = 1 << 20  # pairs whose projection Jacobian is taken at once (6 batched copies of its graph)
 RASTER_INPUTS = (("means2d", 2), ("conics", 3), ("opacities", 1), ("colors", 3))  # what the rasterizer reads per pair
+
+
+@dataclass
+class Splat:
+    """What a pair render needs of a splat: its Gaussians as splatfacto stores them, and how splatfacto renders them."""
+
+    params: Dict[str, Tensor]
+    """Raw, detached: means [N, 3], quats [N, 4], scales [N, 3] (log), opacities [N, 1] (logit), features_dc
+    [N, 3] and features_rest [N, K, 3] (SH coefficients, or sigmoid RGB logits in features_dc when sh_degree is
+    None)."""
+    sh_degree: Optional[int]
+    """The SH degree rendered with at the current step (None: plain RGB colours)."""
+    background: Tensor
+    """[3] background colour."""
+    antialiased: bool = False
+    """gsplat's `rasterize_mode="antialiased"` (opacity times the low-pass compensation)."""
+    backend: str = "cpu"
+    """`gsplat` (CUDA kernels) or `cpu` (`cpu_raster`)."""
+
+    @property
+    def num_points(self) -> int:
+        return int(self.params["means"].shape[0])
 
 
 @dataclass
@@ -92,13 +115,6 @@ class PairRender:
         return out
 
 
-def active_sh_degree(model) -> int | None:
-    """The SH degree splatfacto renders with at the model's current step (None: plain RGB colours)."""
-    if model.config.sh_degree <= 0:
-        return None
-    return min(model.step // model.config.sh_degree_interval, model.config.sh_degree)
-
-
 @torch.no_grad()
 def visible_pairs(means: Tensor, covars: Tensor, viewmats: Tensor, Ks: Tensor, width: int, height: int):
     """(camera_ids, gaussian_ids, radii) of the pairs gsplat would rasterize: in front of the near plane, a
@@ -112,7 +128,7 @@ def visible_pairs(means: Tensor, covars: Tensor, viewmats: Tensor, Ks: Tensor, w
     cids, gids, radii = [], [], []
     for start in range(0, C, cams_per_chunk):
         vm, K = viewmats[start : start + cams_per_chunk], Ks[start : start + cams_per_chunk]
-        proj = _project(means[None], covars[None], vm[:, None], K[:, None], width, height, EPS2D, False, radius_floor=0.1)
+        proj = project(means[None], covars[None], vm[:, None], K[:, None], width, height, EPS2D, False, radius_floor=0.1)
         m2, r = proj["means2d"], proj["radius"]
         valid = ok[None] & (proj["depths"] >= NEAR_PLANE) & (proj["det"] > 0) & (r > 0) & torch.isfinite(r)
         valid &= torch.isfinite(m2).all(-1) & torch.isfinite(proj["conics"]).all(-1)
@@ -125,11 +141,11 @@ def visible_pairs(means: Tensor, covars: Tensor, viewmats: Tensor, Ks: Tensor, w
 
 
 def render_pairs(
-    model, viewmats: Tensor, Ks: Tensor, width: int, height: int, grad_params: Sequence[str], backend: str,
+    splat: Splat, viewmats: Tensor, Ks: Tensor, width: int, height: int, grad_params: Sequence[str],
     sh_via_color: bool = False, drop_hidden: bool = False, linearize: bool = False,
 ) -> PairRender:
     """Eval-mode RGB of C views of one size ([C, 4, 4] world-to-camera, [C, 3, 3] intrinsics), differentiable
-    w.r.t. each pair's copy of `grad_params` (names of `model.gauss_params`). `backend`: "gsplat" or "cpu".
+    w.r.t. each pair's copy of `grad_params` (names of `splat.params`), with `splat.backend`'s rasterizer.
 
     `sh_via_color`: the SH coefficients (`features_dc`, `features_rest`) get no gradient of their own; the
     render carries `color_offset` and `sh_bases` instead, from which `sh_squared_gradients` gives theirs. The
@@ -143,31 +159,31 @@ def render_pairs(
     `linearize`: `image` is differentiable w.r.t. `raster_inputs` only, and `PairRender.gradients` carries the
     gradient on to the parameters with each pair's projection Jacobian (the SH coefficients through the colour,
     as with `sh_via_color`). Same gradients; each probe then back-propagates through the rasterizer alone."""
-    params = {n: t.detach() for n, t in model.gauss_params.items()}
+    params = {n: t.detach() for n, t in splat.params.items()}
     C = viewmats.shape[0]
     with torch.no_grad():
-        covars = _quat_scale_to_covar(params["quats"], torch.exp(params["scales"]))
+        covars = quat_scale_to_covar(params["quats"], torch.exp(params["scales"]))
     with record_function("pair_render.cull"):
         cids, gids, radii = visible_pairs(params["means"], covars, viewmats, Ks, width, height)
     in_frustum = int(cids.numel())
-    rasterize = _rasterize_gsplat if backend == "gsplat" else _rasterize_cpu
-    backgrounds = model.background_color.to(viewmats).expand(C, 3).contiguous()
+    rasterize = _rasterize_gsplat if splat.backend == "gsplat" else _rasterize_cpu
+    backgrounds = splat.background.to(viewmats).expand(C, 3).contiguous()
     if drop_hidden and in_frustum:
         with record_function("pair_render.drop_hidden"):
-            keep = composited(model, params, cids, gids, radii, viewmats, Ks, width, height, rasterize, backgrounds)
+            keep = composited(splat, params, cids, gids, radii, viewmats, Ks, width, height, rasterize, backgrounds)
         cids, gids, radii = cids[keep], gids[keep], radii[keep]
-    degree = active_sh_degree(model)
+    degree = splat.sh_degree
     via_color = (sh_via_color or linearize) and degree is not None
     if via_color:
         grad_params = [n for n in grad_params if n not in SH_PARAMS]
     if linearize:
-        return _render_linearized(model, params, cids, gids, radii, viewmats, Ks, width, height, grad_params, degree,
+        return _render_linearized(splat, params, cids, gids, radii, viewmats, Ks, width, height, grad_params,
                                   rasterize, backgrounds, in_frustum)
     leaves = {n: t[gids].requires_grad_(n in grad_params) for n, t in params.items()}
 
-    proj, opacities = project_pairs(model, leaves, cids, viewmats, Ks, width, height)
+    proj, opacities = project_pairs(splat, leaves, cids, viewmats, Ks, width, height)
     offset = bases = None
-    colors = pair_colors(model, leaves, cids, viewmats, degree)
+    colors = pair_colors(leaves, cids, viewmats, degree)
     if via_color:
         offset = torch.zeros_like(colors, requires_grad=True)
         colors = colors + offset
@@ -181,25 +197,26 @@ def render_pairs(
     )
 
 
-def pair_colors(model, p: Dict[str, Tensor], cids: Tensor, viewmats: Tensor, degree: int | None) -> Tensor:
+def pair_colors(p: Dict[str, Tensor], cids: Tensor, viewmats: Tensor, degree: int | None) -> Tensor:
     """splatfacto's colour of each pair before the clamp at 0 (SH at the pair's viewing direction, or sigmoid RGB)."""
     if degree is None:
         return torch.sigmoid(p["features_dc"])
     campos = torch.inverse(viewmats)[:, :3, 3]
     coeffs = torch.cat((p["features_dc"][:, None, :], p["features_rest"]), dim=1)
-    return _sh_to_color(degree, p["means"] - campos[cids], coeffs) + 0.5
+    return sh_to_color(degree, p["means"] - campos[cids], coeffs) + 0.5
 
 
 @torch.no_grad()
 def pair_sh_bases(p: Dict[str, Tensor], cids: Tensor, viewmats: Tensor, degree: int) -> Tensor:
     """[nnz, (degree+1)^2] the SH bases at each pair's viewing direction (what `sh_squared_gradients` needs)."""
     campos = torch.inverse(viewmats)[:, :3, 3]
-    return _sh_bases(degree, p["means"] - campos[cids])
+    return sh_bases(degree, p["means"] - campos[cids])
 
 
-def _render_linearized(model, params, cids, gids, radii, viewmats, Ks, width, height, grad_params, degree, rasterize,
+def _render_linearized(splat: Splat, params, cids, gids, radii, viewmats, Ks, width, height, grad_params, rasterize,
                        backgrounds, in_frustum) -> PairRender:
     """`render_pairs(linearize=True)`: the rasterizer's inputs as leaves, plus each pair's projection Jacobian."""
+    degree = splat.sh_degree
     # With SH the coefficients are left to the colour gradient; sigmoid RGB colours are chained like the rest.
     theta = [n for n in grad_params if n in params]
     leaves = {n: t[gids] for n, t in params.items()}
@@ -213,8 +230,8 @@ def _render_linearized(model, params, cids, gids, radii, viewmats, Ks, width, he
         rows = slice(start, start + JACOBIAN_PAIRS_PER_CHUNK)
         with torch.enable_grad(), record_function("pair_render.jacobian"):
             p = {n: t[rows].requires_grad_(n in theta) for n, t in leaves.items()}
-            proj, opacities = project_pairs(model, p, cids[rows], viewmats, Ks, width, height)
-            unclamped = pair_colors(model, p, cids[rows], viewmats, degree)
+            proj, opacities = project_pairs(splat, p, cids[rows], viewmats, Ks, width, height)
+            unclamped = pair_colors(p, cids[rows], viewmats, degree)
             colors = torch.clamp_min(unclamped, 0.0)
             # Rows of every pair's Jacobian at once (the pairs are independent), by batched backward passes: the
             # 6 geometric rows through the projection, the 3 colour rows through the SH only (a single 9-row pass
@@ -245,24 +262,24 @@ def _render_linearized(model, params, cids, gids, radii, viewmats, Ks, width, he
     )
 
 
-def project_pairs(model, p: Dict[str, Tensor], cids: Tensor, viewmats: Tensor, Ks: Tensor, width: int, height: int):
+def project_pairs(splat: Splat, p: Dict[str, Tensor], cids: Tensor, viewmats: Tensor, Ks: Tensor, width: int, height: int):
     """gsplat's projection of each pair (its raw `means`, `quats`, `scales`, `opacities` in `p`, [nnz, ...]) into
     its view: (`_project`'s dict, the opacities splatfacto rasterizes with)."""
-    cov = _quat_scale_to_covar(p["quats"], torch.exp(p["scales"]))
-    proj = _project(p["means"], cov, viewmats[cids], Ks[cids], width, height, EPS2D, False)
+    cov = quat_scale_to_covar(p["quats"], torch.exp(p["scales"]))
+    proj = project(p["means"], cov, viewmats[cids], Ks[cids], width, height, EPS2D, False)
     opacities = torch.sigmoid(p["opacities"]).reshape(-1)
-    if model.config.rasterize_mode == "antialiased":
+    if splat.antialiased:
         opacities = opacities * proj["compensations"]
     return proj, opacities
 
 
-def composited(model, params, cids, gids, radii, viewmats, Ks, width, height, rasterize, backgrounds) -> Tensor:
+def composited(splat: Splat, params, cids, gids, radii, viewmats, Ks, width, height, rasterize, backgrounds) -> Tensor:
     """[nnz] bool: whether each pair is composited into at least one pixel. With zero colours that require grad
     and an all-ones upstream gradient, a pair's colour gradient is sum over pixels of alpha * T: > 0 exactly
     when it is composited somewhere (no cancellation: every term is >= 0)."""
     with torch.no_grad():
         pair_params = {n: params[n][gids] for n in ("means", "quats", "scales", "opacities")}
-        proj, opacities = project_pairs(model, pair_params, cids, viewmats, Ks, width, height)
+        proj, opacities = project_pairs(splat, pair_params, cids, viewmats, Ks, width, height)
     probe = torch.zeros(gids.shape[0], 3, dtype=opacities.dtype, device=opacities.device, requires_grad=True)
     with torch.enable_grad():
         image, _ = rasterize(proj["means2d"], proj["conics"], probe, opacities, radii, proj["depths"], cids, gids,
@@ -285,8 +302,6 @@ def sh_squared_gradients(sh_bases: Tensor, color_grad_sq: Tensor, n_rest: int) -
 
 
 def _rasterize_cpu(means2d, conics, colors, opacities, radii, depths, cids, gids, C, width, height, backgrounds):
-    from hpgs_ns.cpu_raster import rasterize_pairs
-
     return rasterize_pairs(means2d, conics, colors, opacities, radii, depths, cids, C, width, height, TILE_SIZE, backgrounds)
 
 

@@ -1,10 +1,10 @@
-"""`hpgs bench`: run time against error for every selector, through the real `ns-train hpgs` pipeline.
+"""`hpgs bench`: the command, and launching its runs (each one a real `ns-train hpgs` in a subprocess).
 
 One run per (scene, protocol, selector, seed), plus two reference rows per (scene, protocol, seed):
 `initial` (no views added) and `all` (every training view). Each run writes
 `OUT/<scene>/<protocol>/<selector>/seed<k>.json`; runs whose JSON exists are skipped, so a killed sweep resumes.
-`hpgs bench --report-only` rebuilds the markdown table and the plots from whatever JSON is there.
-`hpgs bench --stress pose-noise exposure corrupt` also runs every scene perturbed (`hpgs_ns/stress.py`): copies
+`hpgs bench --report-only` rebuilds the markdown table and the plots from whatever JSON is there (`report`).
+`hpgs bench --stress pose-noise exposure corrupt` also runs every scene perturbed (`stress`): copies
 `OUT/_scenes/<scene>+<perturbation>`, results under `OUT/<scene>+<perturbation>/`, and `stress.md` beside `table.md`.
 """
 
@@ -12,72 +12,27 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import math
 import os
 import shlex
 import shutil
 import subprocess
-import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Dict, List, Literal, Optional, Sequence, Tuple
+from typing import Any, Dict, List, Literal, Optional, Sequence, Tuple
 
 import tyro
 from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-from hpgs_ns.atomic_write import write_text_atomic
-from hpgs_ns.executors import ExecutorConfig, run_sweep
-from hpgs_ns.stress import PerturbationName, StressConfig, StressError, stress_plot, stress_table, stressed_scenes
+from hpgs_ns.atomic_write import write_json_atomic, write_text_atomic
+from hpgs_ns.bench.executors import ExecutorConfig, make_executor
+from hpgs_ns.bench.protocols import DEFAULT_SELECTORS, PROTOCOLS, REFERENCES, Protocol, scaled
+from hpgs_ns.bench.report import load_results, make_plots, markdown_table, stress_plot, stress_table, work_table
+from hpgs_ns.bench.stress import PerturbationName, StressConfig, StressError, stressed_scenes
+from hpgs_ns.ns_train import ns_train_command
 
 CONSOLE = Console(stderr=True)
-SELECTORS = ("random", "farthest", "fisher", "hpgs", "condorcet")
-REFERENCES = ("initial", "all")
-
-
-@dataclass(frozen=True)
-class Protocol:
-    """How many views to start from and when to add more."""
-
-    name: str
-    steps: int
-    initial_views: int
-    initial_mode: str
-    select_every: int = 0
-    select_at: Tuple[int, ...] = ()
-    max_rounds: int = 7
-
-
-def fisherrf_schedule(initial: int = 4, final: int = 20, per_view: int = 100) -> Tuple[int, ...]:
-    """FisherRF adds a view every |train| x 100 steps: 400, 900, 1500, ... up to `final` views."""
-    steps, t = [], 0
-    for n in range(initial, final):
-        t += n * per_view
-        steps.append(t)
-    return tuple(steps)
-
-
-PROTOCOLS = {
-    "hpgs": Protocol("hpgs", steps=15000, initial_views=20, initial_mode="even", select_every=2000, max_rounds=7),
-    "fisherrf": Protocol(
-        "fisherrf", steps=20000, initial_views=4, initial_mode="fps", select_at=fisherrf_schedule(), max_rounds=16
-    ),
-}
-
-
-def scaled(protocol: Protocol, scale: float) -> Protocol:
-    """The protocol with every step count multiplied by `scale` (short CPU runs keep the same shape)."""
-    if scale == 1.0:
-        return protocol
-    return Protocol(
-        protocol.name,
-        steps=max(int(protocol.steps * scale), 1),
-        initial_views=protocol.initial_views,
-        initial_mode=protocol.initial_mode,
-        select_every=max(int(protocol.select_every * scale), 1) if protocol.select_every else 0,
-        select_at=tuple(max(int(s * scale), 1) for s in protocol.select_at),
-        max_rounds=protocol.max_rounds,
-    )
 
 
 @dataclass
@@ -89,8 +44,8 @@ class Bench:
     for the embedded procedural scenes (generated into OUT/_scenes on first use)."""
     out: Path = Path("benchmarks/results/bench")
     """Results folder (one JSON per run; table and plots beside)."""
-    selectors: List[str] = field(default_factory=lambda: list(SELECTORS))
-    """Selectors to run."""
+    selectors: List[str] = field(default_factory=lambda: list(DEFAULT_SELECTORS))
+    """Selectors to run (any registered name)."""
     seeds: List[int] = field(default_factory=lambda: [0, 1, 2])
     """Seeds: initial random views, selector randomness and torch."""
     protocols: List[Literal["hpgs", "fisherrf"]] = field(default_factory=lambda: ["hpgs"])
@@ -197,7 +152,7 @@ SYNTHETIC = "synthetic:"
 def resolve_scenes(scenes: Sequence[Path], folder: Path) -> List[Path]:
     """`synthetic:<layout>` (ring, occluded, sparse-objects) -> the embedded procedural scene of that layout,
     generated into `folder/synthetic-<layout>` on first use; other entries are scene folders, returned as given."""
-    from hpgs_ns.synthetic_scene import LAYOUTS, make_scene
+    from hpgs_ns.scenes.synthetic import LAYOUTS, make_scene
 
     out = []
     for scene in scenes:
@@ -230,41 +185,37 @@ def run_folder(run_root: Path, scene: Path, protocol: str, name: str, seed: int)
 
 
 def train_args(bench: Bench, scene: Path, protocol: Protocol, name: str, seed: int, run_root: Path) -> List[str]:
+    """The `ns-train hpgs` command of one run."""
     initial = bench.initial_views or protocol.initial_views
     selector, rounds = name, protocol.max_rounds
     if name == "initial":
         selector, rounds = "random", 0
     elif name == "all":
         selector, rounds, initial = "random", 0, 100000
-    args = [
-        sys.executable, "-m", "nerfstudio.scripts.train", "hpgs",
-        "--data", str(scene), "--output-dir", str(run_root), "--experiment-name", scene.name,
-        "--timestamp", f"{protocol.name}-{name}-seed{seed}", "--vis", "tensorboard",
-        "--machine.seed", str(seed),
-        "--max-num-iterations", str(protocol.steps), "--steps-per-save", str(protocol.steps),
-        "--steps-per-eval-all-images", str(10 * protocol.steps),
-        "--steps-per-eval-image", str(10 * protocol.steps),
-        "--pipeline.datamanager.num-initial-views", str(initial),
-        "--pipeline.datamanager.initial-views", protocol.initial_mode,
-        "--pipeline.datamanager.max-rounds", str(rounds),
-        "--pipeline.datamanager.selector", selector,
-        "--pipeline.datamanager.seed", str(seed),
-        "--pipeline.datamanager.eval-each-round", "True",
-        # ns-eval's JSON, written by the training process (hpgs_ns/trainer.py): no second start-up per run
-        "--final-eval-json", str(run_folder(run_root, scene, protocol.name, name, seed) / "eval.json"),
-        "--pipeline.model.rasterizer", bench.rasterizer,
-    ]
+    datamanager: Dict[str, Any] = {
+        "num-initial-views": initial,
+        "initial-views": protocol.initial_mode,
+        "max-rounds": rounds,
+        "selector": selector,
+        "seed": seed,
+        "eval-each-round": True,
+    }
     if protocol.select_at:
-        args += ["--pipeline.datamanager.select-at", *map(str, protocol.select_at)]
+        datamanager["select-at"] = protocol.select_at
     else:
-        args += ["--pipeline.datamanager.select-every", str(protocol.select_every)]
+        datamanager["select-every"] = protocol.select_every
     if bench.downscale_factor is not None:
-        args += ["--pipeline.datamanager.dataparser.downscale-factor", str(bench.downscale_factor)]
+        datamanager["dataparser.downscale-factor"] = bench.downscale_factor
     if bench.reset_after_add:
-        args += ["--pipeline.datamanager.reset-after-add", "True"]
+        datamanager["reset-after-add"] = True
     if bench.strict_init:
-        args += ["--pipeline.datamanager.strict-init", "True"]
-    return args + shlex.split(bench.extra_args)
+        datamanager["strict-init"] = True
+    return ns_train_command(
+        scene, run_root, scene.name, f"{protocol.name}-{name}-seed{seed}", protocol.steps,
+        # ns-eval's JSON, written by the training process (hpgs_ns/trainer.py): no second start-up per run
+        trainer={"machine.seed": seed, "final-eval-json": run_folder(run_root, scene, protocol.name, name, seed) / "eval.json"},
+        datamanager=datamanager, model={"rasterizer": bench.rasterizer}, extra=shlex.split(bench.extra_args),
+    )
 
 
 def run_settings(bench: Bench, protocol: Protocol) -> dict:
@@ -337,35 +288,6 @@ def summed_work(rounds: List[dict]) -> Dict[str, float]:
     return total
 
 
-def work_table(rows: List[dict]) -> str:
-    """What selection computed and what it skipped, per selector (mean over runs): renders at the size the
-    selector needs vs the dataset's, Fisher's frustum-culled (view, Gaussian) pairs vs all of them."""
-    groups: Dict[Tuple[str, str, str], List[dict]] = {}
-    for r in rows:
-        if r.get("selection_work"):
-            groups.setdefault((r["scene"], r["protocol"], r["selector"]), []).append(r)
-    if not groups:
-        return ""
-    lines = [
-        "| scene | protocol | selector | views rendered | pixels vs full size | pairs vs unculled | backward passes | forwards | selection (s) |",
-        "|---|---|---|---|---|---|---|---|---|",
-    ]
-
-    def mean(group: List[dict], key: str) -> float:
-        return sum(g["selection_work"].get(key, 0.0) for g in group) / len(group)
-
-    for (scene, protocol, sel), group in sorted(groups.items()):
-        full, pairs_all = mean(group, "pixels_full_resolution"), mean(group, "pairs_unculled")
-        pixels = f"{100 * mean(group, 'pixels_rendered') / full:.0f}%" if full else "-"
-        pairs = f"{100 * mean(group, 'pairs_differentiated') / pairs_all:.0f}%" if pairs_all else "-"
-        seconds = sum(g["selection_seconds"] for g in group) / len(group)
-        lines.append(
-            f"| {scene} | {protocol} | {sel} | {mean(group, 'views_rendered'):.0f} | {pixels} | {pairs} | "
-            f"{mean(group, 'backward_passes'):.0f} | {mean(group, 'model_forwards'):.0f} | {seconds:.1f} |"
-        )
-    return "\n".join(lines) + "\n"
-
-
 def train_timing(run_dir: Path) -> dict:
     """Per-iteration training time from the run's tensorboard events.
 
@@ -397,150 +319,60 @@ def device_name() -> str:
     return torch.cuda.get_device_name(0) if torch.cuda.is_available() else f"cpu x{os.cpu_count()}"
 
 
-def load_results(out: Path) -> List[dict]:
-    return [json.loads(p.read_text()) for p in sorted(out.glob("*/*/*/seed*.json"))]
+Job = Tuple[Path, Protocol, str, int]  # (scene, protocol, selector or reference name, seed), as `Bench.jobs()` lists
 
 
-def _mean_std(values: Sequence[float]) -> Tuple[float, float]:
-    n = len(values)
-    mean = sum(values) / n
-    std = math.sqrt(sum((v - mean) ** 2 for v in values) / (n - 1)) if n > 1 else 0.0
-    return mean, std
+def run_label(job: Job) -> str:
+    scene, protocol, name, seed = job
+    return f"{scene.name}/{protocol.name}/{name}/seed{seed}"
 
 
-def markdown_table(rows: List[dict]) -> str:
-    """Mean +- std over seeds per (scene, protocol, selector)."""
-    groups: Dict[Tuple[str, str, str], List[dict]] = {}
-    for r in rows:
-        groups.setdefault((r["scene"], r["protocol"], r["selector"]), []).append(r)
-    lines = [
-        "| scene | protocol | selector | seeds | views | PSNR | SSIM | LPIPS | devices | wall (s) | selection (s) |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
-    ]
-    order = {name: i for i, name in enumerate(list(SELECTORS) + list(REFERENCES))}
-    for (scene, protocol, sel), group in sorted(groups.items(), key=lambda kv: (kv[0][0], kv[0][1], order.get(kv[0][2], 99))):
-        cells = []
-        for key in ("psnr", "ssim", "lpips"):
-            m, s = _mean_std([g["test"][key] for g in group])
-            digits = 2 if key == "psnr" else 3
-            # One seed has no spread to show (a "± 0.00" would read as a measured one).
-            cells.append(f"{m:.{digits}f} ± {s:.{digits}f}" if len(group) > 1 else f"{m:.{digits}f}")
-        wall, _ = _mean_std([g["wall_seconds"] for g in group])
-        selt, _ = _mean_std([g["selection_seconds"] for g in group])
-        views = group[0]["num_views_final"]
-        devices = device_counts(group)
-        lines.append(
-            f"| {scene} | {protocol} | {sel} | {len(group)} | {views} | {' | '.join(cells)} | {devices} | {wall:.0f} | {selt:.1f} |"
+def sweep_worker(item: Tuple[Any, Job], env: Dict[str, str]) -> dict:
+    """Worker side: train and evaluate one run, write its JSON, return `{"result": ...}` or `{"error", "log"}`."""
+    bench, (scene, protocol, name, seed) = item
+    try:
+        result = run_one(bench, scene, protocol, name, seed, env={**os.environ, **env})
+    except (Exception, SystemExit) as exc:  # run_one exits on a failed training; keep the worker alive
+        return {"error": str(exc), "log": str(run_log_path(bench.out, scene, protocol.name, name, seed))}
+    write_json_atomic(result_path(bench.out, scene, protocol.name, name, seed), result)
+    return {"result": result}
+
+
+def run_sweep(bench: Any, jobs: Sequence[Job], config: ExecutorConfig) -> None:
+    """Driver side: run `jobs` on the configured executor; every finished run's JSON ends up under `bench.out`.
+
+    Every worker writes its run's JSON itself (temp file + rename) as well: a run that finishes while the driver is
+    dead (Slurm jobs outlive it) is kept, and a re-run of the sweep submits only the runs with no JSON."""
+    if not jobs:
+        return
+    # Absolute paths: Ray workers and Slurm jobs need not start in this folder.
+    bench = replace(bench, out=bench.out.resolve(), scenes=[s.resolve() for s in bench.scenes])
+    jobs = [(scene.resolve(), protocol, name, seed) for scene, protocol, name, seed in jobs]
+    executor = make_executor(config, bench.out)
+    CONSOLE.print(f"hpgs bench: {len(jobs)} runs to do ({config.executor})")
+    failures: List[str] = []
+    columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
+    with Progress(*columns, console=CONSOLE) as progress:
+        bar = progress.add_task("runs", total=len(jobs))
+        for done in executor.map(sweep_worker, [(bench, job) for job in jobs]):
+            job = jobs[done.index]
+            value = done.value or {"error": done.error, "log": None}
+            if "result" in value:
+                result = value["result"]
+                path = result_path(bench.out, job[0], job[1].name, job[2], job[3])
+                if not path.exists():  # the worker wrote it unless it ran on another filesystem
+                    write_json_atomic(path, result)
+                progress.console.print(
+                    f"{run_label(job)}  PSNR {result['test']['psnr']:.2f}  wall {result['wall_seconds']:.0f} s  "
+                    f"selection {result['selection_seconds']:.1f} s"
+                )
+            else:
+                failures.append(f"{run_label(job)} (log: {value['log']})")
+                last = (value["error"] or "").strip().splitlines()
+                progress.console.print(f"[red]failed: {failures[-1]}: {last[-1] if last else ''}")
+            progress.advance(bar)
+    if failures:
+        raise SystemExit(
+            f"hpgs bench: {len(failures)} of {len(jobs)} runs failed (the others' results are saved; "
+            "re-run to retry only these):\n  " + "\n  ".join(failures)
         )
-    return "\n".join(lines) + "\n"
-
-
-def short_device(row: dict) -> str:
-    """`NVIDIA H100 80GB HBM3` -> `H100`, `cpu x2` -> `cpu`."""
-    return str(row.get("device", "?")).replace("NVIDIA ", "").split()[0]
-
-
-def device_counts(group: List[dict]) -> str:
-    """`H100 x2, H200`: wall times are only comparable on one device, and sweeps span sessions and machines."""
-    counts: Dict[str, int] = {}
-    for g in group:
-        counts[short_device(g)] = counts.get(short_device(g), 0) + 1
-    return ", ".join(name if n == 1 else f"{name} x{n}" for name, n in sorted(counts.items()))
-
-
-def make_plots(rows: List[dict], out: Path) -> List[Path]:
-    """PSNR vs wall time per selector, PSNR vs number of views, per (scene, protocol)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    paths = []
-    keys = sorted({(r["scene"], r["protocol"]) for r in rows})
-    for scene, protocol in keys:
-        group = [r for r in rows if r["scene"] == scene and r["protocol"] == protocol]
-        fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4.2))
-        # One marker per device: run times are only comparable on one device.
-        markers = dict(zip(sorted({short_device(r) for r in group}), "o^sDvP"))
-        for i, sel in enumerate(sorted({r["selector"] for r in group})):
-            rs = [r for r in group if r["selector"] == sel]
-            for n, r in enumerate(rs):
-                ax1.scatter(r["wall_seconds"], r["test"]["psnr"], s=30, color=f"C{i}",
-                            marker=markers[short_device(r)], label=sel if n == 0 else None)
-            if sel in REFERENCES:
-                continue
-            for k, r in enumerate(rs):
-                pts = [(p["num_views_before"], p["test_psnr"]) for p in r["psnr_per_round"] if p["test_psnr"] is not None]
-                pts.append((r["num_views_final"], r["test"]["psnr"]))
-                ax2.plot(*zip(*pts), marker="o", ms=3, color=f"C{i}",
-                         label=sel if k == 0 else None, alpha=0.8)
-        ax1.set(xlabel="wall time (s)", ylabel="test PSNR (dB)", title=f"{scene} / {protocol}: PSNR vs run time")
-        ax2.set(xlabel="training views", ylabel="test PSNR (dB)", title="PSNR as views are added")
-        handles, labels = ax1.get_legend_handles_labels()
-        if len(markers) > 1:
-            for device, marker in markers.items():
-                handles.append(ax1.scatter([], [], marker=marker, color="grey", s=30))
-                labels.append(device)
-        ax1.legend(handles, labels, fontsize=8)
-        ax2.legend(fontsize=8)
-        fig.tight_layout()
-        path = out / f"{scene}-{protocol}.png"
-        fig.savefig(path, dpi=110)
-        plt.close(fig)
-        paths.append(path)
-        map_path = camera_map(group, out / f"{scene}-{protocol}-cameras.png")
-        if map_path is not None:
-            paths.append(map_path)
-    return paths
-
-
-def camera_centres(scene: Path) -> Optional[Dict[str, Tuple[float, float]]]:
-    """Top-down 2D positions of a scene's cameras by image name: COLMAP centres projected on the plane of their
-    two principal directions (the capture's ground plane for orbit-like captures)."""
-    import numpy as np
-
-    from hpgs_ns.colmap_model import camera_pose, read_images
-
-    images = read_images(Path(scene) / "sparse" / "0")
-    if images is None:
-        return None
-    names = [im.name for im in images.values()]
-    centres = np.stack([camera_pose(im)[1] for im in images.values()])
-    centred = centres - centres.mean(axis=0)
-    _, _, vt = np.linalg.svd(centred, full_matrices=False)
-    xy = centred @ vt[:2].T
-    return {n: (float(x), float(y)) for n, (x, y) in zip(names, xy)}
-
-
-def camera_map(group: List[dict], path: Path) -> Optional[Path]:
-    """One panel per selector (first seed): all cameras, the initial views, and the chosen ones numbered."""
-    import matplotlib.pyplot as plt
-
-    runs = [r for r in sorted(group, key=lambda r: r["seed"]) if r["selector"] not in REFERENCES and r["chosen_views"]]
-    if not runs:
-        return None
-    data = shlex.split(runs[0]["command"])
-    scene = Path(data[data.index("--data") + 1]) if "--data" in data else None
-    pos = camera_centres(scene) if scene is not None and scene.is_dir() else None
-    if not pos:
-        return None
-    first = {}
-    for r in runs:
-        first.setdefault(r["selector"], r)
-    fig, axes = plt.subplots(1, len(first), figsize=(3.6 * len(first), 3.6), squeeze=False)
-    all_xy = list(pos.values())
-    for ax, (sel, r) in zip(axes[0], sorted(first.items())):
-        ax.scatter(*zip(*all_xy), s=6, c="lightgrey", label="withheld / test")
-        ax.scatter(*zip(*[pos[n] for n in r["initial_views"] if n in pos]), s=12, c="C0", label="initial")
-        chosen = [(k, pos[name]) for k, name in enumerate(r["chosen_views"], 1) if name in pos]
-        if chosen:
-            ax.scatter(*zip(*[xy for _, xy in chosen]), s=30, c="C3", label="added (in order)")
-        for k, xy in chosen:
-            ax.annotate(str(k), xy, fontsize=8, xytext=(3, 3), textcoords="offset points")
-        ax.set(title=f"{sel} (seed {r['seed']})", xticks=[], yticks=[], aspect="equal")
-    # Below the panels: inside one it would hide cameras.
-    fig.legend(*axes[0][0].get_legend_handles_labels(), loc="lower center", ncol=3, fontsize=8, frameon=False)
-    fig.tight_layout(rect=(0, 0.07, 1, 1))
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path

@@ -779,7 +779,7 @@ def _ground_truth(
     )
     f = spec.focal
     return {
-        "generator": "hpgs_ns.synthetic_scene",
+        "generator": "hpgs_ns.scenes.synthetic",
         "layout": spec.layout,
         "seed": spec.seed,
         "spec": asdict(spec),

@@ -1,4 +1,4 @@
-"""Stress mode for `hpgs bench`: perturbed copies of a scene, and how much each selector loses on them.
+"""Stress mode for `hpgs bench`: perturbed copies of a scene (`bench.report` tabulates how much each selector loses).
 
 Each perturbation writes a copy of a Mip-NeRF 360 scene folder (`images/`, `images_N/`, `sparse/0/`) named
 `<scene>+<perturbation>`, and touches the *training* views only: the test split (every 8th image in file-name
@@ -22,7 +22,7 @@ import tempfile
 import zlib
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Dict, List, Literal, Optional, Sequence, Tuple
+from typing import List, Literal, Optional, Sequence, Tuple
 
 import numpy as np
 from rich.console import Console
@@ -54,7 +54,7 @@ class PoseNoise:
     def apply(self, scene: Path, train: Sequence[str], rng: np.random.Generator) -> dict:
         from nerfstudio.data.utils.colmap_parsing_utils import rotmat2qvec
 
-        from hpgs_ns.colmap_model import camera_pose, read_images, write_images
+        from hpgs_ns.scenes.colmap_model import camera_pose, read_images, write_images
 
         model = scene / "sparse" / "0"
         images = read_images(model)
@@ -163,7 +163,7 @@ def rodrigues(axis_angle: np.ndarray) -> np.ndarray:
 def split_names(scene: Path) -> Tuple[List[str], List[str]]:
     """(training, test) image names of a scene: the COLMAP model's images in file-name order, every 8th a test
     view, as the dataparser splits them."""
-    from hpgs_ns.colmap_model import read_images
+    from hpgs_ns.scenes.colmap_model import read_images
 
     images = read_images(scene / "sparse" / "0")
     if images is None:
@@ -247,117 +247,3 @@ def _replace_file(path: Path, write) -> None:
     to the source scene's file: renaming over it leaves the source alone)."""
     with atomic_path(path, suffix=path.suffix) as tmp:
         write(str(tmp))
-
-
-# ------------------------------------------------------------------------------------------------------------
-# Report
-
-
-def split_scene_name(scene: str) -> Tuple[str, str]:
-    """`"ring+exposure"` -> `("ring", "exposure")`; a clean scene's perturbation is `"clean"`."""
-    base, _, perturbation = scene.partition("+")
-    return base, perturbation or "clean"
-
-
-Key = Tuple[str, str, str, str]  # (base scene, protocol, selector, perturbation)
-
-
-def _psnr_by_seed(rows: List[dict]) -> Dict[Key, Dict[int, float]]:
-    """(base scene, protocol, selector, perturbation) -> {seed: test PSNR}."""
-    values: Dict[Key, Dict[int, float]] = {}
-    for r in rows:
-        base, perturbation = split_scene_name(r["scene"])
-        values.setdefault((base, r["protocol"], r["selector"], perturbation), {})[r["seed"]] = r["test"]["psnr"]
-    return values
-
-
-def _mean(values) -> float:
-    values = list(values)
-    return sum(values) / len(values)
-
-
-def _paired_change(psnr: Dict[Key, Dict[int, float]], key: Key) -> Optional[float]:
-    """Mean over seeds of (perturbed - clean), on the seeds run both ways: seeds differ in their initial views,
-    so a perturbed seed is only compared with the same seed's clean run. None without a common seed."""
-    clean = psnr.get(key[:3] + ("clean",), {})
-    seeds = sorted(set(psnr.get(key, {})) & set(clean))
-    return _mean(psnr[key][s] - clean[s] for s in seeds) if seeds else None
-
-
-def _stress_groups(psnr: Dict[Key, Dict[int, float]]):
-    """(base, protocol, perturbations, selectors in bench order) for every group with a perturbed run."""
-    from hpgs_ns.bench import REFERENCES, SELECTORS
-
-    order = {name: i for i, name in enumerate(list(SELECTORS) + list(REFERENCES))}
-    for base, protocol in sorted({k[:2] for k in psnr if k[3] != "clean"}):
-        keys = [k for k in psnr if k[:2] == (base, protocol)]
-        perturbations = sorted({k[3] for k in keys if k[3] != "clean"})
-        selectors = sorted({k[2] for k in keys}, key=lambda s: (order.get(s, 99), s))
-        yield base, protocol, perturbations, selectors
-
-
-def stress_plot(rows: List[dict], out: Path) -> List[Path]:
-    """Per (scene, protocol): bars of the PSNR change from clean (paired by seed), one group per selector, one bar
-    per perturbation."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    psnr = _psnr_by_seed(rows)
-    paths = []
-    for base, protocol, perturbations, selectors in _stress_groups(psnr):
-        selectors = [s for s in selectors if any(_paired_change(psnr, (base, protocol, s, p)) is not None for p in perturbations)]
-        if not selectors:
-            continue
-        fig, ax = plt.subplots(figsize=(1.4 * len(selectors) + 2, 3.6))
-        width = 0.8 / len(perturbations)
-        for j, p in enumerate(perturbations):
-            xs = [i + (j - (len(perturbations) - 1) / 2) * width for i in range(len(selectors))]
-            drops = [_paired_change(psnr, (base, protocol, s, p)) for s in selectors]
-            ax.bar(xs, [float("nan") if d is None else d for d in drops], width, label=p)
-        ax.axhline(0, color="k", lw=0.8)
-        ax.set_xticks(range(len(selectors)), selectors)
-        ax.set(ylabel="test PSNR change from clean (dB)", title=f"{base} / {protocol}: stress (same seeds)")
-        ax.legend(fontsize=8)
-        fig.tight_layout()
-        path = out / f"{base}-{protocol}-stress.png"
-        fig.savefig(path, dpi=110)
-        plt.close(fig)
-        paths.append(path)
-    return paths
-
-
-def stress_table(rows: List[dict]) -> str:
-    """Per scene and protocol with perturbed runs: test PSNR per selector, clean and under each perturbation, with
-    the change from clean in dB paired by seed; "" when no row is from a perturbed scene."""
-    psnr = _psnr_by_seed(rows)
-    lines = []
-    for base, protocol, perturbations, selectors in _stress_groups(psnr):
-        lines += [
-            f"**{base} / {protocol}**: test PSNR (dB), mean over seeds; clean over the seeds also run perturbed; "
-            "in brackets the change from clean on the same seeds",
-            "",
-            "| selector | clean | " + " | ".join(perturbations) + " | mean change |",
-            "|---|---|" + "---|" * len(perturbations) + "---|",
-        ]
-        for sel in selectors:
-            clean = psnr.get((base, protocol, sel, "clean"), {})
-            stressed_seeds = set().union(*(psnr.get((base, protocol, sel, p), {}) for p in perturbations)) & set(clean)
-            clean_cell = f"{_mean(clean[s] for s in sorted(stressed_seeds or clean)):.2f}" if clean else "–"
-            cells, drops = [], []
-            for p in perturbations:
-                runs = psnr.get((base, protocol, sel, p))
-                if not runs:
-                    cells.append("–")
-                    continue
-                change = _paired_change(psnr, (base, protocol, sel, p))
-                drops.append(change)
-                mean = _mean(runs.values())
-                cells.append(f"{mean:.2f}" if change is None else f"{mean:.2f} ({change:+.2f})")
-            # Averaged only over a full row: a mean of some perturbations is not comparable with one of all.
-            full = len(drops) == len(perturbations) and None not in drops
-            avg = f"{_mean(drops):+.2f}" if full else "–"
-            lines.append(f"| {sel} | {clean_cell} | {' | '.join(cells)} | {avg} |")
-        lines.append("")
-    return "\n".join(lines)

@@ -8,12 +8,10 @@ format (`Image_1,Image_2,Human Preference`), ready for `hpgs label`.
 
 from __future__ import annotations
 
-import csv
 import random
 import shlex
 import shutil
 import subprocess
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import List, Literal, Optional
@@ -25,7 +23,8 @@ from PIL import Image
 from rich.console import Console
 from rich.progress import track
 
-from hpgs_ns.atomic_write import atomic_path
+from hpgs_ns.atomic_write import write_csv_atomic
+from hpgs_ns.ns_train import ns_train_command
 
 CONSOLE = Console(stderr=True)
 
@@ -62,22 +61,16 @@ class Collect:
         if not self.data.is_dir():
             raise SystemExit(f"hpgs collect: scene folder {self.data} does not exist; pass --data PATH")
         run_root = self.out / "run"
-        cmd = [
-            sys.executable, "-m", "nerfstudio.scripts.train", "hpgs",
-            "--data", str(self.data), "--output-dir", str(run_root), "--experiment-name", "collect",
-            "--timestamp", f"seed{self.seed}", "--vis", "tensorboard",
-            "--max-num-iterations", str(self.steps), "--steps-per-save", str(self.steps),
-            "--steps-per-eval-all-images", str(10 * self.steps),
-            "--pipeline.datamanager.num-initial-views", str(self.num_views),
-            "--pipeline.datamanager.initial-views", "random",
-            "--pipeline.datamanager.max-rounds", "0",
-            "--pipeline.datamanager.seed", str(self.seed),
-            "--pipeline.datamanager.snapshot-every", str(self.every),
-            "--pipeline.model.rasterizer", self.rasterizer,
-            *shlex.split(self.extra_args),
-        ]
+        datamanager = {
+            "num-initial-views": self.num_views, "initial-views": "random", "max-rounds": 0, "seed": self.seed,
+            "snapshot-every": self.every,
+        }
         if self.downscale_factor is not None:
-            cmd += ["--pipeline.datamanager.dataparser.downscale-factor", str(self.downscale_factor)]
+            datamanager["dataparser.downscale-factor"] = self.downscale_factor
+        cmd = ns_train_command(
+            self.data, run_root, "collect", f"seed{self.seed}", self.steps, datamanager=datamanager,
+            model={"rasterizer": self.rasterizer}, extra=shlex.split(self.extra_args),
+        )
         run_dir = run_root / "collect" / "hpgs" / f"seed{self.seed}"
         final = run_dir / "snapshots" / f"step-{self.steps - self.steps % self.every:06d}"
         if not final.is_dir():  # not finished (or never started): train from scratch
@@ -150,10 +143,3 @@ def draw_pairs(images: List[str], n: int, seed: int) -> List[dict]:
         out.append({"Image_1": images[a], "Image_2": images[b], "Human Preference": ""})
     return out
 
-
-def write_csv_atomic(path: Path, columns: List[str], rows: List[dict]) -> None:
-    """Write a CSV via a temp file and a rename."""
-    with atomic_path(path) as tmp, open(tmp, "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=columns)
-        writer.writeheader()
-        writer.writerows(rows)

@@ -1,12 +1,9 @@
-"""Where `hpgs bench` runs its training runs: here (`local`), on a Ray cluster (`ray`) or on Slurm (`slurm`).
+"""Where work items run: here (`local`), on a Ray cluster (`ray`) or on Slurm (`slurm`).
 
-The scheduling is the cluster's: Ray tasks with `num_gpus`/`num_cpus`, or submitit job arrays. This module only
-maps `sweep_worker` over the runs still missing and, on the driver, writes each run's JSON as it arrives,
-streams progress with rich and reports failed runs (name and log) after the others have finished.
-
-Every worker writes its run's JSON itself (temp file + rename) as well: a run that finishes while the driver is
-dead (Slurm jobs outlive it) is kept, and a re-run of the sweep submits only the runs with no JSON.
-Ray and submitit are optional (`pip install 'hpgs-ns[cluster]'`) and imported only when chosen.
+The scheduling is the cluster's: Ray tasks with `num_gpus`/`num_cpus`, or submitit job arrays. An executor maps a
+worker function `fn(item, env) -> value` over items and yields each result (`Done`) as it arrives; what a worker
+does is its caller's business (`hpgs bench`: `bench.runs.sweep_worker`). Ray and submitit are optional
+(`pip install 'hpgs-ns[cluster]'`) and imported only when chosen.
 """
 
 from __future__ import annotations
@@ -14,12 +11,11 @@ from __future__ import annotations
 import os
 import queue
 from concurrent.futures import ThreadPoolExecutor, as_completed
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Dict, Iterator, List, Literal, Optional, Sequence, Tuple
+from typing import Any, Callable, Dict, Iterator, List, Literal, Optional, Sequence
 
 from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
 CONSOLE = Console(stderr=True)
 INSTALL = "pip install 'hpgs-ns[cluster]'"
@@ -31,7 +27,7 @@ Worker = Callable[[Any, Dict[str, str]], Any]
 @dataclass
 class ExecutorConfig:
     """Where the runs execute. `local` runs them here, one after another (or one per visible GPU); `ray` submits
-    each run as a Ray task; `slurm` submits a job array through submitit. Runs whose JSON exists are skipped."""
+    each run as a Ray task; `slurm` submits a job array through submitit."""
 
     executor: Literal["local", "ray", "slurm"] = "local"
     """Run locally, as Ray tasks, or as Slurm jobs (the last two need `pip install 'hpgs-ns[cluster]'`)."""
@@ -214,68 +210,3 @@ def make_executor(config: ExecutorConfig, out: Path):
     if config.executor == "slurm":
         return SlurmExecutor(config, out / "_submitit")
     return LocalExecutor(config)
-
-
-# --- hpgs bench on top of an executor -------------------------------------------------------------------------
-
-Job = Tuple[Path, Any, str, int]  # (scene, Protocol, selector or reference name, seed), as `Bench.jobs()` lists
-
-
-def run_label(job: Job) -> str:
-    scene, protocol, name, seed = job
-    return f"{scene.name}/{protocol.name}/{name}/seed{seed}"
-
-
-def sweep_worker(item: Tuple[Any, Job], env: Dict[str, str]) -> dict:
-    """Worker side: train and evaluate one run, write its JSON, return `{"result": ...}` or `{"error", "log"}`."""
-    from hpgs_ns.bench import result_path, run_log_path, run_one  # bench imports this module
-
-    bench, (scene, protocol, name, seed) = item
-    try:
-        result = run_one(bench, scene, protocol, name, seed, env={**os.environ, **env})
-    except (Exception, SystemExit) as exc:  # run_one exits on a failed training; keep the worker alive
-        return {"error": str(exc), "log": str(run_log_path(bench.out, scene, protocol.name, name, seed))}
-    from hpgs_ns.atomic_write import write_json_atomic
-
-    write_json_atomic(result_path(bench.out, scene, protocol.name, name, seed), result)
-    return {"result": result}
-
-
-def run_sweep(bench: Any, jobs: Sequence[Job], config: ExecutorConfig) -> None:
-    """Driver side: run `jobs` on the configured executor; every finished run's JSON ends up under `bench.out`."""
-    from hpgs_ns.bench import result_path
-    from hpgs_ns.atomic_write import write_json_atomic
-
-    if not jobs:
-        return
-    # Absolute paths: Ray workers and Slurm jobs need not start in this folder.
-    bench = replace(bench, out=bench.out.resolve(), scenes=[s.resolve() for s in bench.scenes])
-    jobs = [(scene.resolve(), protocol, name, seed) for scene, protocol, name, seed in jobs]
-    executor = make_executor(config, bench.out)
-    CONSOLE.print(f"hpgs bench: {len(jobs)} runs to do ({config.executor})")
-    failures: List[str] = []
-    columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
-    with Progress(*columns, console=CONSOLE) as progress:
-        bar = progress.add_task("runs", total=len(jobs))
-        for done in executor.map(sweep_worker, [(bench, job) for job in jobs]):
-            job = jobs[done.index]
-            value = done.value or {"error": done.error, "log": None}
-            if "result" in value:
-                result = value["result"]
-                path = result_path(bench.out, job[0], job[1].name, job[2], job[3])
-                if not path.exists():  # the worker wrote it unless it ran on another filesystem
-                    write_json_atomic(path, result)
-                progress.console.print(
-                    f"{run_label(job)}  PSNR {result['test']['psnr']:.2f}  wall {result['wall_seconds']:.0f} s  "
-                    f"selection {result['selection_seconds']:.1f} s"
-                )
-            else:
-                failures.append(f"{run_label(job)} (log: {value['log']})")
-                last = (value["error"] or "").strip().splitlines()
-                progress.console.print(f"[red]failed: {failures[-1]}: {last[-1] if last else ''}")
-            progress.advance(bar)
-    if failures:
-        raise SystemExit(
-            f"hpgs bench: {len(failures)} of {len(jobs)} runs failed (the others' results are saved; "
-            "re-run to retry only these):\n  " + "\n  ".join(failures)
-        )

@@ -1,0 +1,1 @@
+"""Rendering beside splatfacto's own: per-(view, Gaussian) pair renders for FisherRF, and camera conventions."""

@@ -1,0 +1,224 @@
+"""Selection rounds: when they happen, what the selector sees, reset-after-add, and the round log.
+
+Every `select_every` steps (never at step 0), or at the `select_at` steps, before that step's training iteration,
+the configured selector scores the withheld views and the chosen ones join the active set, until `max_rounds`
+rounds have run or the pool is empty. Rounds run from a BEFORE_TRAIN_ITERATION callback because splatfacto's
+densification reads state left by the last training render (`model.info`), so nothing may be rendered between
+backward and the strategy step.
+
+The datamanager owns which views are active (and saves them, with the round history, in every checkpoint); the
+model owns rendering; the selector owns scoring. This class asks each for its part. Its options are the
+datamanager's (`--pipeline.datamanager.select-every`, ...), where users have always set them.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any, Dict, List, Optional
+
+import numpy as np
+import torch
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
+from nerfstudio.utils import writer
+from nerfstudio.utils.rich_utils import CONSOLE
+
+from hpgs_ns.atomic_write import write_json_atomic
+from hpgs_ns.errors import UserError
+from hpgs_ns.schedules import restart_schedules
+from hpgs_ns.selectors.base import Selection, SelectionContext, SelectionError, Selector, check_selection
+
+
+class RoundError(UserError, RuntimeError):
+    """A selection round cannot run as configured."""
+
+
+class SelectionRounds:
+    """Runs the selection rounds of one training run (see the module docstring)."""
+
+    def __init__(self, datamanager, model, selector: Optional[Selector] = None) -> None:
+        self.datamanager = datamanager
+        self.model = model
+        self.config = datamanager.config
+        self.selector: Selector = selector if selector is not None else self.config.selector_config().setup()
+        self.run_dir: Optional[Path] = None
+
+    # ---- when ------------------------------------------------------------------------------------------------
+
+    def is_round_step(self, step: int) -> bool:
+        """True when a selection round is due at `step`."""
+        every = self.config.select_every
+        if self.config.select_at:
+            if step not in self.config.select_at:
+                return False
+        elif step <= 0 or every <= 0 or step % every != 0:
+            return False
+        history = self.datamanager.history
+        done = {h["step"] for h in history}
+        return step not in done and len(history) < self.config.max_rounds and bool(self.datamanager.candidates)
+
+    def callbacks(self, attrs: TrainingCallbackAttributes) -> List[TrainingCallback]:
+        """The BEFORE_TRAIN_ITERATION callback that runs rounds (and resets), and one that writes the final log."""
+        trainer = attrs.trainer
+        if trainer is not None and getattr(trainer, "base_dir", None) is not None:
+            self.run_dir = Path(trainer.base_dir)
+        if self.config.reset_after_add:
+            self.model.keep_initial_for_resets()
+
+        def before_iteration(step: int) -> None:
+            if step == getattr(trainer, "_start_step", 0):
+                self.write_log()
+            if self.is_round_step(step):
+                self.run_round(step)
+                if self.config.reset_after_add:
+                    self.reset_model(step, attrs.optimizers)
+
+        callbacks = [TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], before_iteration)]
+        if trainer is not None:
+            last = trainer.config.max_num_iterations - 1
+            callbacks.append(
+                TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], lambda step: self.write_log(), iters=(last,))
+            )
+        return callbacks
+
+    # ---- one round -------------------------------------------------------------------------------------------
+
+    def context(self, step: int) -> SelectionContext:
+        """The typed context a selector sees for a round at `step`."""
+        dm, model = self.datamanager, self.model
+        candidates = dm.candidates
+        cameras = dm.train_dataset.cameras
+        short = self.config.selection_short_side
+        return SelectionContext(
+            step=step,
+            round_index=len(dm.history),
+            active=list(dm.active),
+            candidates=candidates,
+            num_to_pick=min(self.config.views_per_round, len(candidates)),
+            cameras=cameras,
+            image_names=dm.image_names,
+            model=model,
+            render=lambda idx, short_side=short: model.render_views(cameras[torch.tensor([int(i) for i in idx], dtype=torch.long)], short_side),
+            # Derived from (seed, round) so a resumed run makes the same choices as an uninterrupted one.
+            generator=torch.Generator().manual_seed(self.config.seed * 1_000_003 + len(dm.history)),
+            device=torch.device(model.device),
+        )
+
+    def run_round(self, step: int) -> Selection:
+        """Ask the selector for views, make them active, and log the round."""
+        dm = self.datamanager
+        test_psnr = self.test_psnr() if self.config.eval_each_round else None
+        context = self.context(step)
+        if not context.candidates:
+            raise SelectionError("no withheld views left to select from")
+        start = time.perf_counter()
+        selection = check_selection(self.selector.select(context), context)
+        seconds = time.perf_counter() - start
+        names = dm.image_names
+        dm.activate(selection.indices)
+        record: Dict[str, Any] = {
+            "round": len(dm.history) + 1,
+            "step": int(step),
+            "selector": self.config.selector,
+            "chosen": [names[i] for i in selection.indices],
+            "chosen_indices": [int(i) for i in selection.indices],
+            "seconds": float(seconds),
+            "num_active": len(dm.active),
+            "test_psnr_before": test_psnr,
+            "reset": False,
+            "scores": {names[i]: float(s) for i, s in selection.scores.items()},
+            "work": {k: float(v) for k, v in selection.work.items()},
+        }
+        dm.history.append(record)
+        CONSOLE.print(
+            f"[bold green]View selection round {record['round']} at step {step}[/bold green]: "
+            f"+ {', '.join(record['chosen'])} ({self.config.selector}, {seconds:.2f} s, {len(dm.active)} active)"
+        )
+        writer.put_scalar("selection/seconds", seconds, step)
+        writer.put_scalar("selection/num_active", len(dm.active), step)
+        self._log_chosen_render(selection.indices[0], step)
+        self._log_scores_plot(selection, step)
+        self.write_log()
+        return selection
+
+    def reset_model(self, step: int, optimizers) -> None:
+        """Reset-after-add: the model back to its step-0 state and every schedule restarted at `step`."""
+        model = self.model
+        if optimizers is None or not hasattr(model, "reset_to_initial"):
+            raise RoundError("reset-after-add needs the hpgs model and the trainer's optimizers")
+        before = model.num_points
+        model.reset_to_initial(step, optimizers.optimizers)
+        restart_schedules(optimizers)
+        self.datamanager.history[-1].update(
+            reset=True, num_gaussians_before_reset=int(before), num_gaussians_after_reset=int(model.num_points)
+        )
+        CONSOLE.print(f"reset after add: {before} -> {model.num_points} Gaussians, schedules restart at step {step}")
+        writer.put_scalar("selection/num_gaussians_before_reset", before, step)
+        self.write_log()
+
+    @torch.no_grad()
+    def test_psnr(self) -> float:
+        """Mean PSNR over the test views with the current splat (eval mode)."""
+        from hpgs_ns.metrics import psnr
+
+        model = self.model
+        with model.eval_mode():
+            values = []
+            for camera, batch in self.datamanager.fixed_indices_eval_dataloader:
+                rgb = model.get_outputs_for_camera(camera)["rgb"].clamp(0, 1)
+                gt = batch["image"].float()
+                gt = gt / 255.0 if batch["image"].dtype == torch.uint8 else gt
+                values.append(psnr(rgb.cpu(), gt[..., :3].cpu()))
+            return float(np.mean(values)) if values else float("nan")
+
+    # ---- the round log ---------------------------------------------------------------------------------------
+
+    def write_log(self) -> Optional[Path]:
+        """Write `selected_views.json` in the run directory (temp file, then rename)."""
+        if self.run_dir is None:
+            return None
+        dm = self.datamanager
+        names = dm.image_names
+        payload = {
+            "selector": self.config.selector,
+            "seed": self.config.seed,
+            "reset_after_add": self.config.reset_after_add,
+            "initial": [names[i] for i in dm.initial_views],
+            "rounds": dm.history,
+            "active": [names[i] for i in dm.active],
+            "withheld": [names[i] for i in dm.candidates],
+            "test": dm.test_view_names,
+            "peak_gpu_memory_mb": torch.cuda.max_memory_allocated() / 2**20 if torch.cuda.is_available() else None,
+        }
+        return write_json_atomic(self.run_dir / "selected_views.json", payload)
+
+    def _log_chosen_render(self, index: int, step: int) -> None:
+        try:
+            cameras = self.datamanager.train_dataset.cameras[torch.tensor([int(index)], dtype=torch.long)]
+            image = self.model.render_views(cameras, self.config.selection_short_side)[0]
+            writer.put_image("selection/chosen_view", image.cpu(), step)
+        except Exception as err:  # logging must never stop training
+            CONSOLE.print(f"[yellow]could not log the chosen view's render: {err}")
+
+    def _log_scores_plot(self, selection: Selection, step: int) -> None:
+        """Candidates' scores as an image in the writer (nerfstudio's writer has no histogram)."""
+        if len(set(selection.scores.values())) < 2:
+            return
+        try:
+            import matplotlib
+
+            matplotlib.use("Agg")
+            import matplotlib.pyplot as plt
+
+            items = sorted(selection.scores.items(), key=lambda kv: -kv[1])
+            fig, ax = plt.subplots(figsize=(6, 2.4), dpi=80)
+            ax.bar(range(len(items)), [v for _, v in items],
+                   color=["C3" if i in selection.indices else "C0" for i, _ in items], width=1.0)
+            ax.set(xlabel="candidates (sorted)", ylabel="score", title=f"{self.config.selector} scores, step {step}")
+            fig.tight_layout()
+            fig.canvas.draw()
+            image = torch.from_numpy(np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()).float() / 255
+            plt.close(fig)
+            writer.put_image("selection/scores", image, step)
+        except Exception as err:  # logging must never stop training
+            CONSOLE.print(f"[yellow]could not plot the selection scores: {err}")

@@ -1,0 +1,1 @@
+"""Scene folders: the embedded procedural scenes, and reading and writing COLMAP models."""

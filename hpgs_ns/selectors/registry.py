@@ -1,0 +1,65 @@
+"""The selector registry: every name `--pipeline.datamanager.selector` accepts, and its options.
+
+Built-in selectors are listed here. Selectors of other packages register through the `hpgs_ns.selectors`
+entry point group, so adding one needs no edit of this package; in the plugin's pyproject.toml:
+
+    [project.entry-points."hpgs_ns.selectors"]
+    my-selector = "my_package.selector:MySelectorConfig"
+
+The entry point names a `SelectorConfig` subclass (or an instance of one, to set its options): its `setup()`
+returns an object with `select(context) -> Selection` (`hpgs_ns.selectors.base`). Entry points are read when
+asked for, and a plugin's module is imported only when its selector is used.
+"""
+
+from __future__ import annotations
+
+import copy
+from importlib.metadata import entry_points
+from typing import Dict, List, Type
+
+from hpgs_ns.selectors.base import SelectionError, SelectorConfig
+from hpgs_ns.selectors.condorcet import CondorcetSelectorConfig
+from hpgs_ns.selectors.farthest import FarthestSelectorConfig
+from hpgs_ns.selectors.fisher import FisherSelectorConfig
+from hpgs_ns.selectors.hpgs import HpgsSelectorConfig
+from hpgs_ns.selectors.random_views import RandomSelectorConfig
+
+ENTRY_POINT_GROUP = "hpgs_ns.selectors"
+
+BUILTIN_SELECTORS: Dict[str, Type[SelectorConfig]] = {
+    "random": RandomSelectorConfig,
+    "farthest": FarthestSelectorConfig,
+    "fisher": FisherSelectorConfig,
+    "hpgs": HpgsSelectorConfig,
+    "condorcet": CondorcetSelectorConfig,
+}
+
+
+def _entry_points() -> Dict[str, object]:
+    return {ep.name: ep for ep in entry_points(group=ENTRY_POINT_GROUP) if ep.name not in BUILTIN_SELECTORS}
+
+
+def selector_names() -> List[str]:
+    """Built-in selectors in their usual order, then those registered by other packages (sorted)."""
+    return list(BUILTIN_SELECTORS) + sorted(_entry_points())
+
+
+def selector_config(name: str) -> SelectorConfig:
+    """A fresh config (default options) of selector `name`; one-line error for an unknown name or a broken
+    entry point."""
+    if name in BUILTIN_SELECTORS:
+        return BUILTIN_SELECTORS[name]()
+    plugins = _entry_points()
+    if name not in plugins:
+        raise SelectionError(
+            f"unknown selector {name!r}; choose one of {', '.join(selector_names())} "
+            f"(other packages add selectors through the {ENTRY_POINT_GROUP!r} entry point group)"
+        )
+    try:
+        target = plugins[name].load()  # type: ignore[attr-defined]
+    except Exception as err:
+        raise SelectionError(f"selector {name!r} ({plugins[name].value}) cannot be loaded: {err}") from err  # type: ignore[attr-defined]
+    config = target() if isinstance(target, type) else copy.deepcopy(target)
+    if not callable(getattr(config, "setup", None)):
+        raise SelectionError(f"selector {name!r} ({plugins[name].value}) is not a SelectorConfig; its entry point must name one")  # type: ignore[attr-defined]
+    return config
