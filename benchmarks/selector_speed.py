@@ -38,7 +38,7 @@ def main() -> None:
             "--pipeline.datamanager.select-every", str(args.steps // args.rounds),
             "--pipeline.datamanager.max-rounds", str(args.rounds),
             "--pipeline.datamanager.selector", sel,
-            "--pipeline.datamanager.dataparser.downscale-factor", str(args.downscale_factor), *args.extra.split(),
+            *args.extra.split(), "mipnerf360", "--downscale-factor", str(args.downscale_factor),
         ]
         start = time.perf_counter()
         proc = subprocess.run(cmd, capture_output=True, text=True)

@@ -6,6 +6,11 @@ decide when views join and which; this class owns the split, the sampling of tra
 checkpoints keep: the active set and the round history (`get_extra_state`), restored by `--load-dir`, `ns-eval`
 and `ns-viewer`.
 
+Views are named by their image's path relative to the data root (`hpgs_ns.dataparser.view_name`): Blender's
+train and test splits both hold `r_0.png`. The test split is the dataparser's own; a test view is never active
+and never a candidate, and a split with no test views (`--eval-mode all`) or test views that are also training
+views is an error.
+
 Its config also carries the rounds' and the selectors' options (`--pipeline.datamanager.select-every`,
 `--pipeline.datamanager.<selector>.*`), where users set them.
 """
@@ -21,7 +26,7 @@ import torch
 from nerfstudio.data.datamanagers.full_images_datamanager import FullImageDatamanager, FullImageDatamanagerConfig
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from hpgs_ns.dataparser import MipNerf360DataParserConfig
+from hpgs_ns.dataparser import DataParserUnion, MipNerf360DataParserConfig, SceneDataError, view_name
 from hpgs_ns.errors import UserError
 from hpgs_ns.selectors import (
     CondorcetSelectorConfig,
@@ -47,7 +52,9 @@ class ActiveDatamanagerConfig(FullImageDatamanagerConfig):
     """Full-image datamanager that starts from a few views and adds the views a selector picks."""
 
     _target: Type = field(default_factory=lambda: ActiveDatamanager)
-    dataparser: MipNerf360DataParserConfig = field(default_factory=MipNerf360DataParserConfig)  # type: ignore
+    dataparser: DataParserUnion = field(default_factory=MipNerf360DataParserConfig)
+    """Which dataparser reads the scene (a subcommand: `mipnerf360`, the default, `nerfstudio-data`, `colmap`,
+    `blender-data`, ...), with its options after it."""
     cache_images_type: Literal["uint8", "float32"] = "uint8"
     num_initial_views: int = 20
     """Training views active at step 0."""
@@ -55,7 +62,8 @@ class ActiveDatamanagerConfig(FullImageDatamanagerConfig):
     """How the initial views are chosen: evenly spaced along the capture (file-name order); `fps`: the first
     view, then farthest camera centres (FisherRF's start); or uniformly at random (seeded)."""
     initial_view_names: Tuple[str, ...] = ()
-    """Explicit initial views by image file name (overrides initial-views)."""
+    """Explicit initial views by name (image path relative to the data root, e.g. `images/0001.png`, or just the
+    file name where that is unambiguous); overrides initial-views."""
     select_every: int = 2000
     """A selection round runs at steps select_every, 2*select_every, ... (never at step 0)."""
     select_at: Tuple[int, ...] = ()
@@ -112,11 +120,28 @@ class ActiveDatamanager(FullImageDatamanager):
         if torch.device(device).type == "cpu":
             # "gpu" caching means "on the datamanager's device"; "cpu" caching pins memory, which needs CUDA.
             config.cache_images = "gpu"
-        super().__init__(config, device=device, test_mode=test_mode, **kwargs)
-        self.image_names: List[str] = [Path(p).name for p in self.train_dataset.image_filenames]
-        test_names = {Path(p).name for p in self.eval_dataset.image_filenames}
-        overlap = test_names & set(self.image_names)
-        assert not overlap, f"test views also in the training split: {sorted(overlap)[:5]}"
+        if getattr(config.dataparser, "eval_mode", None) == "all":
+            raise ActiveViewError(
+                "--eval-mode all trains on the test views too, so nothing is withheld for testing; use the dataparser's "
+                "default split (e.g. nerfstudio-data --eval-mode fraction, or interval)"
+            )
+        try:
+            super().__init__(config, device=device, test_mode=test_mode, **kwargs)
+        except AssertionError as err:  # nerfstudio checks each image's size against its camera's while caching
+            if "does not match the camera parameters" not in str(err):
+                raise
+            raise SceneDataError(
+                f"{err}: the images were downscaled with another rounding than the cameras; pass the dataparser's "
+                "--downscale-rounding-mode (floor, round or ceil) that made them, or delete the images_N folder"
+            ) from None
+        root = Path(self.config.dataparser.data)
+        self.image_names: List[str] = [view_name(p, root) for p in self.train_dataset.image_filenames]
+        overlap = set(self.test_view_names) & set(self.image_names)
+        if overlap:
+            raise ActiveViewError(
+                f"{len(overlap)} test views are also training views (e.g. {sorted(overlap)[0]}): the dataparser's split "
+                "overlaps; choose a split that holds test views out (--eval-mode fraction, interval or filename)"
+            )
         self.generator = torch.Generator().manual_seed(self.config.seed)
         self.active: List[int] = self._initial_views()
         self.history: List[Dict[str, Any]] = []
@@ -140,7 +165,7 @@ class ActiveDatamanager(FullImageDatamanager):
 
     @property
     def test_view_names(self) -> List[str]:
-        return [Path(p).name for p in self.eval_dataset.image_filenames]
+        return [view_name(p, Path(self.config.dataparser.data)) for p in self.eval_dataset.image_filenames]
 
     def activate(self, indices: Sequence[int]) -> None:
         """Make withheld views active (they are sampled from the next training pass on)."""
@@ -150,10 +175,7 @@ class ActiveDatamanager(FullImageDatamanager):
     def _initial_views(self) -> List[int]:
         n, k = len(self.train_dataset), self.config.num_initial_views
         if self.config.initial_view_names:
-            unknown = [v for v in self.config.initial_view_names if v not in self.image_names]
-            if unknown:
-                raise ActiveViewError(f"initial view {unknown[0]!r} is not a training image (test views cannot be used)")
-            return sorted(self.image_names.index(v) for v in self.config.initial_view_names)
+            return sorted(self._view_index(v) for v in self.config.initial_view_names)
         if k < 1:
             raise ActiveViewError("--pipeline.datamanager.num-initial-views must be at least 1")
         if k >= n:
@@ -166,20 +188,39 @@ class ActiveDatamanager(FullImageDatamanager):
         centres = self.train_dataset.cameras.camera_to_worlds[:, :3, 3]
         return sorted(farthest_point_order(centres, k, start=0))
 
+    def _view_index(self, name: str) -> int:
+        """Index of the training view called `name` (its full name, or its file name if no other view has it)."""
+        if name in self.image_names:
+            return self.image_names.index(name)
+        matches = [i for i, n in enumerate(self.image_names) if Path(n).name == name]
+        if len(matches) == 1:
+            return matches[0]
+        if matches:
+            raise ActiveViewError(f"initial view {name!r} names several views; write it whole, e.g. {self.image_names[matches[0]]!r}")
+        raise ActiveViewError(f"initial view {name!r} is not a training view (test views cannot be used)")
+
     def _keep_points_seen_by_initial_views(self, min_views: int = 2) -> None:
         """Filter the dataparser's seed points in place (the pipeline hands them to the model after this)."""
         # nerfstudio's own COLMAP reader, as its dataparser used: the mask then lines up with its point order.
         from hpgs_ns.scenes.colmap_model import read_images, read_points3D
 
+        parser = self.config.dataparser
+        if not hasattr(parser, "colmap_path"):
+            raise ActiveViewError(
+                "strict-init needs COLMAP point tracks (which images see each point), which only COLMAP scenes have "
+                "(the mipnerf360 or colmap dataparser); drop --pipeline.datamanager.strict-init"
+            )
         meta = self.train_dataparser_outputs.metadata
         if "points3D_xyz" not in meta:
             return
-        model_dir = Path(self.config.dataparser.data) / self.config.dataparser.colmap_path
+        model_dir = Path(parser.data) / parser.colmap_path
         images, points = read_images(model_dir), read_points3D(model_dir)
         if images is None or points is None:
             raise ActiveViewError(f"strict-init needs {model_dir}/images and points3D (.bin or .txt); drop --pipeline.datamanager.strict-init")
         name_to_id = {im.name: im_id for im_id, im in images.items()}
-        initial_ids = {name_to_id[self.image_names[i]] for i in self.active if self.image_names[i] in name_to_id}
+        # COLMAP names images by their path inside the image folder: a view name without its first folder.
+        colmap_names = [Path(*Path(n).parts[1:]).as_posix() for n in self.image_names]
+        initial_ids = {name_to_id[colmap_names[i]] for i in self.active if colmap_names[i] in name_to_id}
         tracks = [set(p.image_ids.tolist()) for p in points.values()]
         if not any(tracks):
             raise ActiveViewError(
@@ -218,10 +259,17 @@ class ActiveDatamanager(FullImageDatamanager):
         return {"version": 1, "image_names": list(self.image_names), "active": list(self.active), "history": self.history}
 
     def set_extra_state(self, state: Dict[str, Any]) -> None:
-        if state.get("image_names") != self.image_names:
+        saved = state.get("image_names")
+        # hpgs-ns 0.1 saved bare file names
+        if saved != self.image_names and saved != [Path(n).name for n in self.image_names]:
             raise ActiveViewError(
                 "checkpoint's active views belong to a different scene or split; pass the --data it was trained on"
             )
         self.active = [int(i) for i in state["active"]]
         self.history = list(state["history"])
+        if saved != self.image_names:  # 0.1 names in the round log: the views' names now
+            by_file = {Path(n).name: n for n in self.image_names}
+            for record in self.history:
+                record["chosen"] = [by_file[n] for n in record["chosen"]]
+                record["scores"] = {by_file[n]: v for n, v in record.get("scores", {}).items()}
         self.train_unseen_cameras = self.sample_train_cameras()

@@ -1,31 +1,54 @@
-"""nerfstudio's COLMAP dataparser, set up for Mip-NeRF 360 scene folders.
+"""The dataparsers `ns-train hpgs` takes: nerfstudio's, as a subcommand, with Mip-NeRF 360 COLMAP as the default.
 
-Three changes to the stock parser, each because `ns-train hpgs --data mipnerf360/kitchen` must work as typed:
+`ns-train hpgs --data mipnerf360/kitchen` uses `mipnerf360` (below); `ns-train hpgs [options] nerfstudio-data
+--data capture/` a `transforms.json` folder from `ns-process-data`, Polycam, Record3D or instant-ngp; `colmap`,
+`blender-data` and every other parser nerfstudio (or one of its plugins) registers are there too, as for
+`ns-train splatfacto`. Parser options follow the subcommand: `ns-train hpgs [options] mipnerf360
+--downscale-factor 2`. Each parser keeps its own train/test split.
+
+`mipnerf360` is nerfstudio's COLMAP parser with four changes, each because `ns-train hpgs --data
+mipnerf360/kitchen` must work as typed:
 - images are ordered by file name (the stock parser orders by COLMAP image id), so "every 8th image is a test
   view" is the Mip-NeRF 360 convention;
-- a missing `images_N` folder is made without an interactive prompt (PIL, written to a temp folder then renamed);
+- a missing `images_N` folder (for the automatic factor or an explicit `--downscale-factor N`) is made without an
+  interactive prompt (PIL, written to a temp folder then renamed), and images whose size does not match their
+  cameras' are a one-line error naming the rounding mode that fits;
 - a bad path or a missing model is a one-line error naming what is missing and how to fix it;
 - unreadable image files (truncated, empty) are dropped with one warning, after the train/test split is made,
   so a dropped frame never shifts which views are test views; too many is an error.
+
+`nerfstudio-data` is nerfstudio's parser loading the capture's seed points (`ply_file_path` in transforms.json,
+or `sparse_pc.ply`) as splatfacto's does, read with `plyfile` instead of open3d (which needs a system library
+that is often missing), and without its interactive prompt.
 """
 
 from __future__ import annotations
 
+import json
+import math
+import os
+import re
 import shutil
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Dict, List, Optional, Type
+from typing import Dict, List, Optional, Tuple, Type
 
 import numpy as np
+import torch
+import tyro
+from nerfstudio.configs.dataparser_configs import all_dataparsers
 from nerfstudio.data.dataparsers.colmap_dataparser import ColmapDataParser, ColmapDataParserConfig
+from nerfstudio.data.dataparsers.nerfstudio_dataparser import Nerfstudio, NerfstudioDataParserConfig
 from nerfstudio.utils.rich_utils import CONSOLE
 from PIL import Image
 
-from hpgs_ns.scenes.colmap_model import model_file
 from hpgs_ns.errors import UserError
+from hpgs_ns.scenes.colmap_model import model_file
 
 MAX_AUTO_RESOLUTION = 1600  # nerfstudio's rule for the automatic downscale factor
+# nerfstudio's --downscale-rounding-mode (colmap_dataparser.calculate_scaled_size)
+ROUNDING = {"floor": math.floor, "round": round, "ceil": math.ceil}
 
 
 class SceneDataError(UserError, ValueError):
@@ -56,7 +79,33 @@ class MipNerf360DataParser(ColmapDataParser):
 
     def _generate_dataparser_outputs(self, split: str = "train", **kwargs):
         self._check_scene_folder()
-        return super()._generate_dataparser_outputs(split, **kwargs)
+        outputs = super()._generate_dataparser_outputs(split, **kwargs)
+        self._check_image_size(outputs)
+        return outputs
+
+    def _check_image_size(self, outputs) -> None:
+        """The first image's size must be its camera's (nerfstudio asserts it deep in image loading)."""
+        if not outputs.image_filenames:
+            return
+        path = Path(outputs.image_filenames[0])
+        with Image.open(path) as image:
+            size = image.size
+        camera = (int(outputs.cameras.width[0]), int(outputs.cameras.height[0]))
+        if size == camera:
+            return
+        factor = self._downscale_factor or 1
+        full = Path(self.config.data) / self.config.images_path / path.name
+        fits = []
+        if factor > 1 and full.is_file():
+            with Image.open(full) as image:
+                width, height = image.size
+            fits = [mode for mode, fn in ROUNDING.items() if (fn(width / factor), fn(height / factor)) == size]
+        fix = (f"pass mipnerf360 --downscale-rounding-mode {fits[0]}" if fits
+               else f"delete {path.parent} to have it rewritten from {full.parent}")
+        raise SceneDataError(
+            f"{path} is {size[0]}x{size[1]} but its camera says {camera[0]}x{camera[1]} ({path.parent} was not made with "
+            f"--downscale-rounding-mode {self.config.downscale_rounding_mode}); {fix}"
+        )
 
     def _check_scene_folder(self) -> None:
         data = Path(self.config.data)
@@ -64,13 +113,19 @@ class MipNerf360DataParser(ColmapDataParser):
             raise SceneDataError(f"scene folder {data} does not exist; pass --data PATH to a Mip-NeRF 360 style scene")
         model = data / self.config.colmap_path
         if model_file(model, "cameras") is None:
+            if (data / "transforms.json").is_file():
+                raise SceneDataError(
+                    f"{data} is a nerfstudio-data folder (transforms.json, no COLMAP model); "
+                    f"run: ns-train hpgs [options] nerfstudio-data --data {data}"
+                )
             raise SceneDataError(
                 f"no camera poses: {model}/cameras.bin (or .txt) is missing; run COLMAP first or set --colmap-path"
             )
         if model_file(model, "images") is None:
             raise SceneDataError(f"no camera poses: {model}/images.bin (or .txt) is missing; run COLMAP first")
-        if not self._image_folder().is_dir():
-            raise SceneDataError(f"image folder {self._image_folder()} does not exist; set --images-path or --downscale-factor")
+        full = data / self.config.images_path
+        if not self._image_folder().is_dir() and not full.is_dir():  # images_N is written from images/
+            raise SceneDataError(f"image folder {full} does not exist; set --images-path")
 
     def _image_folder(self) -> Path:
         """Where the photos are read from: `images/`, or `images_N/` when a downscale factor N is given."""
@@ -82,6 +137,8 @@ class MipNerf360DataParser(ColmapDataParser):
         out = super()._get_all_images_and_cameras(recon_dir)
         out["frames"] = sorted(out["frames"], key=lambda frame: Path(frame["file_path"]).name)
         folder = self._image_folder()
+        if not folder.is_dir():  # images_N is written from the full-resolution images below
+            folder = Path(self.config.data) / self.config.images_path
         missing = [str(folder / Path(f["file_path"]).name) for f in out["frames"] if not (folder / Path(f["file_path"]).name).exists()]
         if missing:
             raise SceneDataError(
@@ -111,7 +168,7 @@ class MipNerf360DataParser(ColmapDataParser):
             why = f"the {empty[0]} split would be empty" if empty else f"more than {limit:.0%} of {len(paths)}"
             raise SceneDataError(
                 f"{len(bad)} unreadable images in {paths[0].parent} ({why}): {names}; restore them from the source "
-                f"or raise --pipeline.datamanager.dataparser.max-unreadable-fraction"
+                f"or raise mipnerf360 --max-unreadable-fraction"
             )
         if first:
             CONSOLE.print(f"[yellow]Dropping {len(bad)} of {len(paths)} images, unreadable: {names} (test split unchanged)", soft_wrap=True)
@@ -146,7 +203,7 @@ def _make_downscaled_folder(source: Path, image_filenames: List[Path], factor: i
     if target.is_dir() and all((target / rel).exists() for rel in wanted):
         return
     CONSOLE.print(f"[yellow]Writing {target.name}/ ({len(wanted)} images downscaled {factor}x)")
-    round_fn = {"floor": int, "round": round, "ceil": lambda v: -int(-v // 1)}[rounding]
+    round_fn = ROUNDING[rounding]
     tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}-", dir=source.parent))
     try:
         for rel in wanted:
@@ -168,7 +225,7 @@ def _make_downscaled_folder(source: Path, image_filenames: List[Path], factor: i
     except OSError as err:
         shutil.rmtree(tmp, ignore_errors=True)
         raise SceneDataError(
-            f"could not write {target} ({err}); make the folder writable or pass --downscale-factor 1"
+            f"could not write {target} ({err}); make the folder writable or pass mipnerf360 --downscale-factor 1"
         ) from err
 
 
@@ -189,3 +246,106 @@ def image_problem(path: Path) -> Optional[str]:
     except Exception as err:  # PIL raises OSError, SyntaxError, struct.error, ... for damaged files
         return "truncated" if "truncated" in str(err).lower() else (str(err) or type(err).__name__)
     return None
+
+
+@dataclass
+class HpgsNerfstudioDataParserConfig(NerfstudioDataParserConfig):
+    """nerfstudio-data (`transforms.json`) with the capture's seed points loaded as splatfacto's parser does."""
+
+    _target: Type = field(default_factory=lambda: HpgsNerfstudio)
+    load_3D_points: bool = True
+    """Start the splat from the capture's points (`ply_file_path` in transforms.json, or sparse_pc.ply)."""
+
+
+class HpgsNerfstudio(Nerfstudio):
+    """nerfstudio's `Nerfstudio` parser; the seed points come from `plyfile` and no question is asked."""
+
+    config: HpgsNerfstudioDataParserConfig
+    _told = False  # the "no points" line is said once, not once per split
+
+    def _generate_dataparser_outputs(self, split: str = "train"):
+        data = Path(self.config.data)
+        meta_path = data if data.suffix == ".json" else data / "transforms.json"
+        if not meta_path.is_file():
+            raise SceneDataError(f"{meta_path} not found; pass --data to a folder made by ns-process-data (or a transforms.json)")
+        load_points, self.config.load_3D_points = self.config.load_3D_points, False  # the stock loader needs open3d
+        try:
+            outputs = super()._generate_dataparser_outputs(split)
+        finally:
+            self.config.load_3D_points = load_points
+        if load_points:
+            meta = json.loads(meta_path.read_text())
+            root = meta_path.parent
+            ply = root / meta["ply_file_path"] if "ply_file_path" in meta else root / "sparse_pc.ply"
+            points = read_ply_points(ply) if ply.is_file() else None
+            if points is None:
+                if not HpgsNerfstudio._told:
+                    CONSOLE.print(f"[yellow]No seed points ({ply.name} not found or empty): the splat starts from random points")
+                    HpgsNerfstudio._told = True
+            else:
+                xyz, rgb = points
+                transform = outputs.dataparser_transform.float()
+                xyz = torch.cat([xyz, torch.ones_like(xyz[:, :1])], -1) @ transform.T * outputs.dataparser_scale
+                outputs.metadata.update({"points3D_xyz": xyz, "points3D_rgb": rgb})
+        return outputs
+
+
+def read_ply_points(path: Path) -> Optional[Tuple[torch.Tensor, torch.Tensor]]:
+    """(xyz float32 [N, 3], rgb uint8 [N, 3]) of a point cloud PLY (colours grey if it has none); None if empty."""
+    from plyfile import PlyData
+
+    try:
+        vertex = PlyData.read(str(path))["vertex"].data
+    except Exception as err:  # plyfile raises several types for damaged files
+        raise SceneDataError(f"cannot read seed points {path} ({err}); fix or delete the file") from err
+    if len(vertex) == 0:
+        return None
+    xyz = np.stack([vertex[k] for k in ("x", "y", "z")], -1).astype(np.float32)
+    names = vertex.dtype.names or ()
+    keys = next((k for k in (("red", "green", "blue"), ("r", "g", "b")) if all(c in names for c in k)), None)
+    if keys is None:
+        rgb = np.full_like(xyz, 128, dtype=np.uint8)
+    else:
+        rgb = np.stack([vertex[k] for k in keys], -1)
+        rgb = (rgb * 255 + 0.5 if rgb.dtype.kind == "f" else rgb).clip(0, 255).astype(np.uint8)
+    return torch.from_numpy(xyz), torch.from_numpy(rgb)
+
+
+# ---- the choice of dataparser ---------------------------------------------------------------------------------
+
+# `mipnerf360` first (the default); nerfstudio's own and its plugins' parsers after it, nerfstudio-data replaced.
+DATAPARSERS = {
+    "mipnerf360": MipNerf360DataParserConfig(),
+    "nerfstudio-data": HpgsNerfstudioDataParserConfig(),
+    **{name: config for name, config in all_dataparsers.items() if name != "nerfstudio-data"},
+}
+DataParserUnion = tyro.conf.OmitSubcommandPrefixes[  # type: ignore[valid-type]
+    tyro.extras.subcommand_type_from_defaults(DATAPARSERS, prefix_names=False)
+]
+"""The dataparser subcommand of `ns-train hpgs` (options after it: `mipnerf360 --downscale-factor 2`)."""
+
+
+def scene_dataparser(scene: Path) -> str:
+    """The subcommand that reads the scene folder `scene`: `mipnerf360` (COLMAP model in sparse/0) or
+    `nerfstudio-data` (transforms.json). One-line error for anything else."""
+    scene = Path(scene)
+    if (scene / "sparse" / "0").is_dir():
+        return "mipnerf360"
+    if (scene / "transforms.json").is_file():
+        return "nerfstudio-data"
+    raise SceneDataError(f"{scene} is not a scene folder (no sparse/0 COLMAP model, no transforms.json); pass a scene folder")
+
+
+_RESOLUTION_FOLDER = re.compile(r"^images_\d+$")
+
+
+def view_name(image_path: Path, data_root: Path) -> str:
+    """How a view is named everywhere (logs, checkpoints, results): its image's path relative to the data root,
+    with a downscaled folder written as the full-resolution one (`images_2/0001.png` -> `images/0001.png`), so a
+    photo keeps its name at every resolution. Blender's train and test splits both hold `r_0.png`: their names
+    are `train/r_0.png` and `test/r_0.png`."""
+    rel = Path(os.path.relpath(image_path, data_root))
+    parts = rel.parts
+    if len(parts) > 1 and _RESOLUTION_FOLDER.match(parts[0]):
+        rel = Path("images", *parts[1:])
+    return rel.as_posix()

@@ -23,6 +23,8 @@ def ns_train_command(
     model: Optional[Mapping[str, Value]] = None,
     trainer: Optional[Mapping[str, Value]] = None,
     extra: Sequence[str] = (),
+    dataparser: Optional[str] = None,
+    dataparser_options: Optional[Mapping[str, Value]] = None,
 ) -> List[str]:
     """`python -m nerfstudio.scripts.train hpgs ...` for one run of `steps` steps in
     `output_dir/experiment/hpgs/timestamp`, with tensorboard instead of the viewer (with the viewer on, ns-train
@@ -30,7 +32,8 @@ def ns_train_command(
 
     `datamanager`, `model` and `trainer` map option names (with dashes or underscores) to values:
     `{"num-initial-views": 6}` -> `--pipeline.datamanager.num-initial-views 6`; a sequence value gives several
-    words, a bool `True`/`False`. `extra` is appended as given."""
+    words, a bool `True`/`False`. `extra` is appended as given. The dataparser subcommand (default
+    `mipnerf360`) comes last, with its options after it, as tyro reads them: `mipnerf360 --downscale-factor 2`."""
     args = [
         sys.executable, "-m", "nerfstudio.scripts.train", "hpgs",
         "--data", str(data), "--output-dir", str(output_dir), "--experiment-name", experiment,
@@ -41,7 +44,12 @@ def ns_train_command(
     for prefix, options in (("", trainer), ("pipeline.datamanager.", datamanager), ("pipeline.model.", model)):
         for name, value in (options or {}).items():
             args += [f"--{prefix}{name.replace('_', '-')}", *_words(value)]
-    return args + list(extra)
+    args += list(extra)
+    if dataparser is not None or dataparser_options:
+        args.append(dataparser or "mipnerf360")
+        for name, value in (dataparser_options or {}).items():
+            args += [f"--{name.replace('_', '-')}", *_words(value)]
+    return args
 
 
 def _words(value: Value) -> List[str]:

@@ -13,9 +13,10 @@ datamanager's (`--pipeline.datamanager.select-every`, ...), where users have alw
 
 from __future__ import annotations
 
+import math
 import time
 from pathlib import Path
-from typing import Any, Dict, List, Optional
+from typing import Any, Dict, List, Optional, Tuple
 
 import numpy as np
 import torch
@@ -57,11 +58,48 @@ class SelectionRounds:
         done = {h["step"] for h in history}
         return step not in done and len(history) < self.config.max_rounds and bool(self.datamanager.candidates)
 
+    def plan(self, first_step: int, end_step: int) -> Tuple[int, str]:
+        """How many rounds a run of steps [first_step, end_step) will run, and why not all `max_rounds` when
+        fewer ("" when all do)."""
+        cfg, dm = self.config, self.datamanager
+        if cfg.max_rounds <= 0:
+            return 0, f"max-rounds {cfg.max_rounds}"
+        left = cfg.max_rounds - len(dm.history)
+        if left <= 0:
+            return 0, f"all {cfg.max_rounds} rounds already ran"
+        if cfg.select_at:
+            steps = [s for s in cfg.select_at if first_step <= s < end_step and s > 0]
+            too_late = f"only {len(steps)} select-at steps come before the last step ({end_step - 1})"
+        elif cfg.select_every > 0:
+            steps = [s for s in range(cfg.select_every, end_step, cfg.select_every) if s >= first_step]
+            too_late = f"select-every {cfg.select_every} leaves {len(steps)} round steps before the last step ({end_step - 1})"
+        else:
+            steps, too_late = [], f"select-every {cfg.select_every} and no select-at"
+        done = {h["step"] for h in dm.history}
+        steps = [s for s in steps if s not in done]
+        candidates = len(dm.candidates)
+        pool = math.ceil(candidates / max(cfg.views_per_round, 1))
+        count = min(len(steps), left, pool)
+        if count == left:
+            return count, ""
+        if pool < min(len(steps), left):
+            if candidates == 0:
+                return 0, "no withheld views to add (the initial views are the whole training split)"
+            return count, f"only {candidates} withheld views to add ({cfg.views_per_round} per round)"
+        return count, too_late
+
     def callbacks(self, attrs: TrainingCallbackAttributes) -> List[TrainingCallback]:
-        """The BEFORE_TRAIN_ITERATION callback that runs rounds (and resets), and one that writes the final log."""
+        """The BEFORE_TRAIN_ITERATION callback that runs rounds (and resets), and one that writes the final log.
+        Says at start when fewer rounds than `max_rounds` will run, and why."""
         trainer = attrs.trainer
         if trainer is not None and getattr(trainer, "base_dir", None) is not None:
             self.run_dir = Path(trainer.base_dir)
+        if trainer is not None:
+            start = int(getattr(trainer, "_start_step", 0))
+            count, why = self.plan(start, start + int(trainer.config.max_num_iterations))
+            if why:
+                what = "no selection rounds will run" if count == 0 else f"only {count} of {self.config.max_rounds} selection rounds will run"
+                CONSOLE.print(f"[yellow]{what}: {why}", soft_wrap=True)
         if self.config.reset_after_add:
             self.model.keep_initial_for_resets()
 

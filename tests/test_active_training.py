@@ -85,13 +85,14 @@ def test_rounds_happen_on_schedule_and_log(trained):
     assert set(log["test"]).isdisjoint(set(log["active"]) | set(log["withheld"]))
     assert len(log["active"]) + len(log["withheld"]) == 35 and len(log["test"]) == 5
     # Mip-NeRF 360 convention: every 8th image in file-name order is a test view.
-    assert log["test"] == [f"{i:04d}.png" for i in range(0, 40, 8)]
+    assert log["test"] == [f"images/{i:04d}.png" for i in range(0, 40, 8)]  # every 8th by file name
     assert all(r["seconds"] >= 0 and len(r["scores"]) == 35 - 6 - k for k, r in enumerate(log["rounds"]))
 
 
 def test_only_active_views_are_trained_on(trained):
     dm = trained["trainer"].pipeline.datamanager
-    test_names = {Path(p).name for p in dm.eval_dataset.image_filenames}
+    test_names = set(dm.test_view_names)
+    assert len(test_names) == 5 and test_names.isdisjoint(dm.image_names)
     assert len(trained["sampled"]) == 60
     for step, index, active in trained["sampled"]:
         assert index in active, f"step {step} trained on withheld view {index}"

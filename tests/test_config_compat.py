@@ -46,7 +46,9 @@ def test_ns_eval_and_ns_viewer_load_an_old_run(old_run):
     assert step == 29 and checkpoint.name == "step-000000029.ckpt"
     saved = json.loads((old_run / "selected_views.json").read_text())
     dm = pipeline.datamanager
-    assert [dm.image_names[i] for i in dm.active] == saved["active"]
+    # 0.1 saved bare file names; the views are named by their path below the data root now
+    assert [dm.image_names[i] for i in dm.active] == [f"images/{n}" for n in saved["active"]]
+    assert [h["chosen"] for h in dm.history] == [[f"images/{n}" for n in r["chosen"]] for r in saved["rounds"]]
     # The renders ns-eval scores (its LPIPS needs larger images than these 32x24 ones).
     from hpgs_ns.metrics import psnr
 

@@ -26,7 +26,7 @@ from hpgs_ns.selectors.random_views import RandomSelectorConfig
 
 def azimuths(scene: Path) -> dict:
     gt = json.loads((scene / "ground_truth.json").read_text())
-    return {c["name"]: c["azimuth_deg"] for c in gt["cameras"]}
+    return {f"images/{c['name']}": c["azimuth_deg"] for c in gt["cameras"]}  # by view name
 
 
 def angular_distance(a: float, b: float) -> float:
@@ -37,7 +37,7 @@ def angular_distance(a: float, b: float) -> float:
 @pytest.fixture(scope="module")
 def one_sided(tiny_scene, tmp_path_factory):
     az = azimuths(tiny_scene)
-    test = {f"{i:04d}.png" for i in range(0, 40, 8)}
+    test = {f"images/{i:04d}.png" for i in range(0, 40, 8)}
     side = tuple(sorted(n for n, a in az.items() if angular_distance(a, 0) <= 60 and n not in test))
     cfg = short_config(tiny_scene, tmp_path_factory.mktemp("one-sided"), steps=40, rounds=0,
                        initial_view_names=side)

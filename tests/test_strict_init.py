@@ -24,7 +24,7 @@ def test_strict_init_keeps_exactly_the_points_two_initial_views_see(tiny_scene, 
     trainer = setup_trainer(tiny_scene, tmp_path, strict_init=True)
     dm = trainer.pipeline.datamanager
     rec = pycolmap.Reconstruction(str(tiny_scene / "sparse" / "0"))
-    initial = {im_id for im_id, im in rec.images.items() if im.name in {dm.image_names[i] for i in dm.active}}
+    initial = {im_id for im_id, im in rec.images.items() if f"images/{im.name}" in {dm.image_names[i] for i in dm.active}}
     assert len(initial) == 6
     seen = [len(initial & {e.image_id for e in p.track.elements}) for p in rec.points3D.values()]
     expected = sum(n >= 2 for n in seen)

@@ -142,17 +142,25 @@ def make_plots(rows: List[dict], out: Path) -> List[Path]:
 
 
 def camera_centres(scene: Path) -> Optional[Dict[str, Tuple[float, float]]]:
-    """Top-down 2D positions of a scene's cameras by image name: COLMAP centres projected on the plane of their
-    two principal directions (the capture's ground plane for orbit-like captures)."""
+    """Top-down 2D positions of a scene's cameras by view name (for COLMAP scenes by COLMAP's image name, the
+    view name without its image folder): camera centres (COLMAP model, or transforms.json) projected on the plane
+    of their two principal directions (the capture's ground plane for orbit-like captures)."""
     import numpy as np
 
+    from hpgs_ns.dataparser import view_name
     from hpgs_ns.scenes.colmap_model import camera_pose, read_images
 
-    images = read_images(Path(scene) / "sparse" / "0")
-    if images is None:
+    scene = Path(scene)
+    images = read_images(scene / "sparse" / "0")
+    if images is not None:
+        names = [im.name for im in images.values()]
+        centres = np.stack([camera_pose(im)[1] for im in images.values()])
+    elif (scene / "transforms.json").is_file():
+        frames = json.loads((scene / "transforms.json").read_text())["frames"]
+        names = [view_name(scene / f["file_path"], scene) for f in frames]
+        centres = np.array([[row[3] for row in f["transform_matrix"][:3]] for f in frames], dtype=float)
+    else:
         return None
-    names = [im.name for im in images.values()]
-    centres = np.stack([camera_pose(im)[1] for im in images.values()])
     centred = centres - centres.mean(axis=0)
     _, _, vt = np.linalg.svd(centred, full_matrices=False)
     xy = centred @ vt[:2].T
@@ -174,12 +182,19 @@ def camera_map(group: List[dict], path: Path) -> Optional[Path]:
     first = {}
     for r in runs:
         first.setdefault(r["selector"], r)
+
+    def at(name: str) -> Optional[Tuple[float, float]]:
+        # a view name, a COLMAP image name (the view name without its image folder), or a 0.1 bare file name
+        return pos.get(name) or pos.get(Path(*Path(name).parts[1:]).as_posix() if len(Path(name).parts) > 1 else name)
+
     fig, axes = plt.subplots(1, len(first), figsize=(3.6 * len(first), 3.6), squeeze=False)
     all_xy = list(pos.values())
     for ax, (sel, r) in zip(axes[0], sorted(first.items())):
         ax.scatter(*zip(*all_xy), s=6, c="lightgrey", label="withheld / test")
-        ax.scatter(*zip(*[pos[n] for n in r["initial_views"] if n in pos]), s=12, c="C0", label="initial")
-        chosen = [(k, pos[name]) for k, name in enumerate(r["chosen_views"], 1) if name in pos]
+        initial = [xy for xy in map(at, r["initial_views"]) if xy is not None]
+        if initial:
+            ax.scatter(*zip(*initial), s=12, c="C0", label="initial")
+        chosen = [(k, at(name)) for k, name in enumerate(r["chosen_views"], 1) if at(name) is not None]
         if chosen:
             ax.scatter(*zip(*[xy for _, xy in chosen]), s=30, c="C3", label="added (in order)")
         for k, xy in chosen:

@@ -30,6 +30,7 @@ from hpgs_ns.bench.executors import ExecutorConfig, make_executor
 from hpgs_ns.bench.protocols import DEFAULT_SELECTORS, PROTOCOLS, REFERENCES, Protocol, scaled
 from hpgs_ns.bench.report import load_results, make_plots, markdown_table, stress_plot, stress_table, work_table
 from hpgs_ns.bench.stress import PerturbationName, StressConfig, StressError, stressed_scenes
+from hpgs_ns.dataparser import SceneDataError, scene_dataparser
 from hpgs_ns.ns_train import ns_train_command
 
 CONSOLE = Console(stderr=True)
@@ -40,8 +41,9 @@ class Bench:
     """Benchmark selectors (test PSNR/SSIM/LPIPS, wall and selection time, memory) on scenes."""
 
     scenes: List[Path] = field(default_factory=list)
-    """Scene folders (Mip-NeRF 360 layout), or `synthetic:ring`, `synthetic:occluded`, `synthetic:sparse-objects`
-    for the embedded procedural scenes (generated into OUT/_scenes on first use)."""
+    """Scene folders (Mip-NeRF 360 layout with sparse/0, read by `mipnerf360`; or transforms.json, read by
+    `nerfstudio-data`), or `synthetic:ring`, `synthetic:occluded`, `synthetic:sparse-objects` for the embedded
+    procedural scenes (generated into OUT/_scenes on first use)."""
     out: Path = Path("benchmarks/results/bench")
     """Results folder (one JSON per run; table and plots beside)."""
     selectors: List[str] = field(default_factory=lambda: list(DEFAULT_SELECTORS))
@@ -124,8 +126,10 @@ class Bench:
 
     def run_all(self) -> None:
         for scene in self.scenes:
-            if not (scene / "sparse" / "0").is_dir():
-                raise SystemExit(f"hpgs bench: {scene} is not a scene folder (no sparse/0); pass --scenes PATH")
+            try:
+                scene_dataparser(scene)
+            except SceneDataError as err:
+                raise SystemExit(f"hpgs bench: {err}") from None
         todo = []
         for job in self.jobs():
             path = result_path(self.out, job[0], job[1].name, job[2], job[3])
@@ -204,8 +208,6 @@ def train_args(bench: Bench, scene: Path, protocol: Protocol, name: str, seed: i
         datamanager["select-at"] = protocol.select_at
     else:
         datamanager["select-every"] = protocol.select_every
-    if bench.downscale_factor is not None:
-        datamanager["dataparser.downscale-factor"] = bench.downscale_factor
     if bench.reset_after_add:
         datamanager["reset-after-add"] = True
     if bench.strict_init:
@@ -215,6 +217,8 @@ def train_args(bench: Bench, scene: Path, protocol: Protocol, name: str, seed: i
         # ns-eval's JSON, written by the training process (hpgs_ns/trainer.py): no second start-up per run
         trainer={"machine.seed": seed, "final-eval-json": run_folder(run_root, scene, protocol.name, name, seed) / "eval.json"},
         datamanager=datamanager, model={"rasterizer": bench.rasterizer}, extra=shlex.split(bench.extra_args),
+        dataparser=scene_dataparser(scene),
+        dataparser_options={} if bench.downscale_factor is None else {"downscale-factor": bench.downscale_factor},
     )
 
 

@@ -24,6 +24,7 @@ from rich.console import Console
 from rich.progress import track
 
 from hpgs_ns.atomic_write import write_csv_atomic
+from hpgs_ns.dataparser import scene_dataparser
 from hpgs_ns.ns_train import ns_train_command
 
 CONSOLE = Console(stderr=True)
@@ -34,7 +35,7 @@ class Collect:
     """Train on a few random views and render every training camera periodically, for labelling."""
 
     data: Path
-    """Scene folder (Mip-NeRF 360 layout)."""
+    """Scene folder: Mip-NeRF 360 layout (COLMAP in sparse/0) or nerfstudio-data (transforms.json)."""
     out: Path
     """Output folder: renders/, renders.csv, pairs.csv (and the training run under run/)."""
     num_views: int = 10
@@ -65,11 +66,11 @@ class Collect:
             "num-initial-views": self.num_views, "initial-views": "random", "max-rounds": 0, "seed": self.seed,
             "snapshot-every": self.every,
         }
-        if self.downscale_factor is not None:
-            datamanager["dataparser.downscale-factor"] = self.downscale_factor
         cmd = ns_train_command(
             self.data, run_root, "collect", f"seed{self.seed}", self.steps, datamanager=datamanager,
             model={"rasterizer": self.rasterizer}, extra=shlex.split(self.extra_args),
+            dataparser=scene_dataparser(self.data),
+            dataparser_options={} if self.downscale_factor is None else {"downscale-factor": self.downscale_factor},
         )
         run_dir = run_root / "collect" / "hpgs" / f"seed{self.seed}"
         final = run_dir / "snapshots" / f"step-{self.steps - self.steps % self.every:06d}"
