@@ -268,6 +268,14 @@ class HpgsNerfstudio(Nerfstudio):
         meta_path = data if data.suffix == ".json" else data / "transforms.json"
         if not meta_path.is_file():
             raise SceneDataError(f"{meta_path} not found; pass --data to a folder made by ns-process-data (or a transforms.json)")
+        factor = self.config.downscale_factor
+        if factor is not None and factor > 1:
+            # nerfstudio reads images_N/<file name> and asks nothing: write it as mipnerf360 does (its rounding: floor)
+            frames = json.loads(meta_path.read_text())["frames"]
+            source = meta_path.parent / "images"
+            paths = [meta_path.parent / f["file_path"] for f in frames]
+            if all(p.parent == source for p in paths):
+                _make_downscaled_folder(source, paths, factor, "floor")
         load_points, self.config.load_3D_points = self.config.load_3D_points, False  # the stock loader needs open3d
         try:
             outputs = super()._generate_dataparser_outputs(split)

@@ -5,12 +5,14 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+from pathlib import Path
 
 import pytest
 
 from hpgs_ns.bench.protocols import fisherrf_schedule
 from hpgs_ns.bench.report import device_counts, load_results, markdown_table, work_table
 from hpgs_ns.bench.runs import Bench, resolve_scenes, summed_work, train_args
+from hpgs_ns.bench.suites import scene_from_folder
 
 KEYS = {
     "scene", "protocol", "selector", "seed", "steps", "test", "psnr_per_round", "wall_seconds", "selection_seconds",
@@ -64,9 +66,9 @@ def test_tiny_bench_writes_results_table_plots_and_resumes(tiny_scene, tmp_path)
 def test_strict_init_runs_go_to_their_own_protocol_folder(tiny_scene, tmp_path):
     bench = Bench(scenes=[tiny_scene], out=tmp_path, selectors=["random"], seeds=[0], references=False,
                   reset_after_add=True, strict_init=True)
-    [(scene, protocol, name, seed)] = bench.jobs()
-    assert protocol.name == "hpgs-reset-strict"
-    args = train_args(bench, scene, protocol, name, seed, tmp_path / "_runs")
+    [job] = bench.jobs()
+    assert job.protocol.name == "hpgs-reset-strict"
+    args = train_args(bench, job, tmp_path / "_runs")
     assert args[args.index("--pipeline.datamanager.strict-init") + 1] == "True"
 
 
@@ -88,13 +90,15 @@ def test_table_names_the_devices_behind_each_row():
 
 
 def test_synthetic_scenes_are_generated_once_by_name(tmp_path, tiny_scene):
-    first = resolve_scenes([tiny_scene, "synthetic:sparse-objects"], tmp_path)
-    assert first[0] == tiny_scene
-    made = first[1]
+    scenes = lambda *paths: [scene_from_folder(Path(p)) for p in paths]  # noqa: E731
+    first = resolve_scenes(scenes(tiny_scene, "synthetic:sparse-objects"), tmp_path)
+    assert first[0].path == tiny_scene
+    made = first[1].path
     assert made == tmp_path / "synthetic-sparse-objects" and (made / "sparse" / "0").is_dir()
+    assert first[1].name == "synthetic-sparse-objects"
     assert len(list((made / "images").glob("*.png"))) == 48
     stamp = (made / "ground_truth.json").stat().st_mtime
-    assert resolve_scenes(["synthetic:sparse-objects"], tmp_path) == [made]
+    assert [s.path for s in resolve_scenes(scenes("synthetic:sparse-objects"), tmp_path)] == [made]
     assert (made / "ground_truth.json").stat().st_mtime == stamp  # reused, not regenerated
     with pytest.raises(SystemExit, match="unknown synthetic scene 'synthetic:cube'"):
-        resolve_scenes(["synthetic:cube"], tmp_path)
+        resolve_scenes(scenes("synthetic:cube"), tmp_path)

@@ -154,18 +154,18 @@ def test_bench_passes_the_option_and_keeps_its_results_apart(tiny_scene, tmp_pat
 
     import tyro
 
-    from hpgs_ns.bench.runs import Bench, result_path, train_args
+    from hpgs_ns.bench.runs import Bench, train_args
     from hpgs_ns.method_config import hpgs_trainer_config
     from hpgs_ns.trainer import HpgsTrainerConfig
 
     bench = tyro.cli(Bench, args=["--scenes", str(tiny_scene), "--protocols", "fisherrf", "--reset-after-add"])
-    scene, protocol, name, seed = bench.jobs()[0]
-    assert protocol.name == "fisherrf-reset" and protocol.select_at[:2] == (400, 900)
-    assert result_path(bench.out, scene, protocol.name, name, seed).parent.parent.name == "fisherrf-reset"
-    args = train_args(bench, scene, protocol, name, seed, tmp_path)
+    job = bench.jobs()[0]
+    assert job.protocol.name == "fisherrf-reset" and job.protocol.select_at[:2] == (400, 900)
+    assert job.result_path(bench.out).parent.parent.name == "fisherrf-reset"
+    args = train_args(bench, job, tmp_path)
     assert args[:4] == [sys.executable, "-m", "nerfstudio.scripts.train", "hpgs"]
     cfg = tyro.cli(tyro.conf.FlagConversionOff[HpgsTrainerConfig], default=hpgs_trainer_config(), args=args[4:])
     assert cfg.pipeline.datamanager.reset_after_add is True
     plain = Bench(scenes=[tiny_scene], protocols=["fisherrf"])
-    assert plain.jobs()[0][1].name == "fisherrf"
-    assert "--pipeline.datamanager.reset-after-add" not in train_args(plain, scene, plain.jobs()[0][1], name, seed, tmp_path)
+    assert plain.jobs()[0].protocol.name == "fisherrf"
+    assert "--pipeline.datamanager.reset-after-add" not in train_args(plain, plain.jobs()[0], tmp_path)

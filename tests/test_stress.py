@@ -202,14 +202,15 @@ def test_bench_stress_runs_each_scene_clean_and_perturbed(scene, tmp_path, monke
     """`hpgs bench --stress` wiring, with training replaced by a stub that records which scene it was given."""
     from hpgs_ns.bench import runs as bench_module
 
-    def fake_run(bench, scene_dir, protocol, name, seed, env=None):
-        parse(scene_dir)  # the real dataparser must accept the perturbed copy
-        psnr = 20.0 - 1.5 * ("+" in scene_dir.name)
-        return {"scene": scene_dir.name, "protocol": protocol.name, "selector": name, "seed": seed, "test": {"psnr": psnr, "ssim": 0.5, "lpips": 0.3},
+    def fake_run(bench, job, env=None, sweep_id=None):
+        parse(job.scene.path)  # the real dataparser must accept the perturbed copy
+        psnr = 20.0 - 1.5 * ("+" in job.scene.name)
+        return {"scene": job.scene.name, "protocol": job.protocol.name, "selector": job.name, "seed": job.seed,
+                "test": {"psnr": psnr, "ssim": 0.5, "lpips": 0.3},
                 "wall_seconds": 1.0, "selection_seconds": 0.0, "num_views_final": 6, "psnr_per_round": [], "chosen_views": [], "command": ""}
 
     monkeypatch.setattr(bench_module, "run_one", fake_run)
-    monkeypatch.setattr(bench_module, "make_plots", lambda rows, out: [])
+    monkeypatch.setattr("hpgs_ns.bench.report.make_plots", lambda rows, out: [])
     out = tmp_path / "bench"
     bench_module.Bench(scenes=[scene], out=out, selectors=["random"], seeds=[0], references=False, stress=["corrupt", "exposure"]).main()
     assert sorted(p.relative_to(out).as_posix() for p in out.glob("*/*/*/seed*.json")) == [

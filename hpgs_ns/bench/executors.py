@@ -26,17 +26,21 @@ Worker = Callable[[Any, Dict[str, str]], Any]
 
 @dataclass
 class ExecutorConfig:
-    """Where the runs execute. `local` runs them here, one after another (or one per visible GPU); `ray` submits
-    each run as a Ray task; `slurm` submits a job array through submitit."""
+    """Where the runs execute. `local` runs them here, one after another (or `runs_per_gpu` on every visible
+    GPU); `ray` submits each run as a Ray task; `slurm` submits a job array through submitit."""
 
     executor: Literal["local", "ray", "slurm"] = "local"
     """Run locally, as Ray tasks, or as Slurm jobs (the last two need `pip install 'hpgs-ns[cluster]'`)."""
+    runs_per_gpu: int = 1
+    """Runs sharing one GPU at a time (one small-scene run leaves an H100 mostly idle): `local` runs this many
+    on every visible GPU, Ray reserves 1/N GPU per run, Slurm runs N per job. Wall and per-step times of
+    concurrent runs are not those of a run alone (the report keeps timing columns from solo runs)."""
     local_workers: Optional[int] = None
-    """Concurrent runs for `local`: default one per visible CUDA GPU (each sees only its own), else 1."""
+    """Concurrent runs for `local`: default `runs_per_gpu` per visible CUDA GPU (each sees only its own), else 1."""
     ray_address: Optional[str] = None
     """Ray cluster to join (`auto`, `HOST:6379`); default $RAY_ADDRESS, else a new local one."""
-    ray_gpus_per_run: float = 1.0
-    """GPUs each Ray task reserves (0 for CPU runs; 0.5 packs two runs per GPU)."""
+    ray_gpus_per_run: Optional[float] = None
+    """GPUs each Ray task reserves (default 1 / runs-per-gpu; 0 for CPU runs)."""
     ray_cpus_per_run: float = 1.0
     """CPUs each Ray task reserves; also the run's OMP_NUM_THREADS (at least 1)."""
     slurm_partition: Optional[str] = None
@@ -44,7 +48,7 @@ class ExecutorConfig:
     slurm_time_min: int = 60
     """Time limit of each Slurm job, minutes."""
     slurm_gpus_per_run: int = 1
-    """GPUs per Slurm job."""
+    """GPUs per Slurm job (it runs `runs_per_gpu` runs at once on them)."""
     slurm_cpus_per_run: int = 8
     """CPUs per Slurm job; also the run's OMP_NUM_THREADS."""
     slurm_mem_gb: Optional[int] = None
@@ -87,12 +91,12 @@ class LocalExecutor:
 
     def map(self, fn: Worker, items: Sequence[Any]) -> Iterator[Done]:
         gpus = visible_gpus()
-        workers = self.config.local_workers or max(len(gpus), 1)
+        workers = self.config.local_workers or max(len(gpus), 1) * max(self.config.runs_per_gpu, 1)
         if workers == 1:
             for i, item in enumerate(items):
                 yield Done(i, fn(item, {}))
             return
-        # Each slot is one GPU (or none on CPU); a run takes a slot for its whole duration.
+        # Each slot is one GPU (runs_per_gpu slots per GPU; none on CPU); a run takes a slot for its whole duration.
         slots: "queue.Queue[Optional[str]]" = queue.Queue()
         for k in range(workers):
             slots.put(gpus[k % len(gpus)] if gpus else None)
@@ -135,12 +139,13 @@ class RayExecutor:
             else:
                 ray.init(address=address, log_to_driver=False)
         gpus = ray.cluster_resources().get("GPU", 0)
-        if cfg.ray_gpus_per_run > gpus:
-            message = f"--ray-gpus-per-run {cfg.ray_gpus_per_run:g} but the Ray cluster has {gpus:g} GPUs"
+        per_run = ray_gpus_per_run(cfg)
+        if per_run > gpus:
+            message = f"--ray-gpus-per-run {per_run:g} but the Ray cluster has {gpus:g} GPUs"
             if started_here:
                 raise SystemExit(f"hpgs bench: {message}; pass --ray-gpus-per-run 0 for CPU runs")
             CONSOLE.print(f"[yellow]{message}: tasks wait until the autoscaler adds GPU nodes")
-        task = ray.remote(num_gpus=cfg.ray_gpus_per_run, num_cpus=cfg.ray_cpus_per_run)(fn)
+        task = ray.remote(num_gpus=per_run, num_cpus=cfg.ray_cpus_per_run)(fn)
         env = thread_env(max(int(cfg.ray_cpus_per_run), 1))
         refs = {task.remote(item, env): i for i, item in enumerate(items)}
         pending = list(refs)
@@ -151,6 +156,13 @@ class RayExecutor:
                     yield Done(refs[ref], ray.get(ref))
                 except Exception as exc:  # the worker died (node lost, out of memory): report, keep the rest
                     yield Done(refs[ref], error=f"Ray task failed: {exc}")
+
+
+def ray_gpus_per_run(config: ExecutorConfig) -> float:
+    """What each Ray task reserves: `--ray-gpus-per-run`, else 1 / `--runs-per-gpu`."""
+    if config.ray_gpus_per_run is not None:
+        return float(config.ray_gpus_per_run)
+    return 1.0 / max(config.runs_per_gpu, 1)
 
 
 def start_local_ray(ray, attempts: int = 3, num_cpus: Optional[int] = None) -> None:
@@ -170,7 +182,7 @@ def start_local_ray(ray, attempts: int = 3, num_cpus: Optional[int] = None) -> N
 
 
 class SlurmExecutor:
-    """A submitit job array: one Slurm job per item (or submitit's local/debug executor for tests)."""
+    """A submitit job array: one Slurm job per `runs_per_gpu` items (or submitit's local/debug executor for tests)."""
 
     def __init__(self, config: ExecutorConfig, folder: Path):
         try:
@@ -192,16 +204,33 @@ class SlurmExecutor:
         if cfg.slurm_mem_gb:
             params["mem_gb"] = cfg.slurm_mem_gb
         executor.update_parameters(**params)
-        env = thread_env(max(cfg.slurm_cpus_per_run, 1))
-        jobs = executor.map_array(fn, list(items), [env] * len(items))
-        index = {id(job): i for i, job in enumerate(jobs)}
+        # runs_per_gpu runs share each job (and its GPUs and CPUs), run side by side by `run_together`.
+        n = max(cfg.runs_per_gpu, 1)
+        env = thread_env(max(cfg.slurm_cpus_per_run // n, 1))
+        chunks = [list(range(start, min(start + n, len(items)))) for start in range(0, len(items), n)]
+        jobs = executor.map_array(run_together, [fn] * len(chunks), [[items[i] for i in c] for c in chunks],
+                                  [env] * len(chunks))
+        index = {id(job): chunk for job, chunk in zip(jobs, chunks)}
         CONSOLE.print(f"submitted {len(jobs)} jobs ({cfg.slurm_cluster}), logs under {self.folder}")
         poll = 10.0 if cfg.slurm_cluster == "slurm" else 0.5
         for job in self.submitit.helpers.as_completed(jobs, poll_frequency=poll):
             try:
-                yield Done(index[id(job)], job.result())
+                values = job.result()
             except Exception as exc:  # cancelled, timed out, or the node failed
-                yield Done(index[id(job)], error=f"job {job.job_id} failed: {str(exc).strip().splitlines()[-1]}")
+                error = f"job {job.job_id} failed: {str(exc).strip().splitlines()[-1]}"
+                for i in index[id(job)]:
+                    yield Done(i, error=error)
+                continue
+            for i, value in zip(index[id(job)], values):
+                yield Done(i, value)
+
+
+def run_together(fn: Worker, items: Sequence[Any], env: Dict[str, str]) -> List[Any]:
+    """`fn` on every item at once, in threads (the runs of one Slurm job sharing its GPU)."""
+    if len(items) == 1:
+        return [fn(items[0], env)]
+    with ThreadPoolExecutor(len(items)) as pool:
+        return list(pool.map(lambda item: fn(item, env), items))
 
 
 def make_executor(config: ExecutorConfig, out: Path):

@@ -1,7 +1,9 @@
-"""`hpgs bench`'s report: the results table, what selection computed, plots, and stress mode's tables.
+"""`hpgs bench`'s report: the results table, paired comparisons, noise and throughput, plots, stress tables.
 
 Everything here reads the per-run JSON (`load_results`) and writes nothing but tables and figures, so
-`hpgs bench --report-only` can rebuild it from any results folder.
+`hpgs bench --report-only` can rebuild it from any results folder (`write_report`). Which selector beats which
+is decided in `paired.md` only (`stats`: runs paired by scene and seed, intervals over scenes); `table.md`'s
+means and spreads are for reading.
 """
 
 from __future__ import annotations
@@ -12,7 +14,12 @@ import shlex
 from pathlib import Path
 from typing import Dict, List, Optional, Sequence, Tuple
 
+from hpgs_ns.atomic_write import write_text_atomic
+from hpgs_ns.bench import stats
 from hpgs_ns.bench.protocols import REFERENCES, row_order
+
+METRICS = ("psnr", "ssim", "lpips")
+BASELINE = "random"
 
 
 def work_table(rows: List[dict]) -> str:
@@ -55,13 +62,20 @@ def _mean_std(values: Sequence[float]) -> Tuple[float, float]:
     return mean, std
 
 
+def solo(row: dict) -> bool:
+    """Whether a run had its GPU to itself (its wall and per-step times then mean what they say)."""
+    return int(row.get("runs_per_gpu", 1)) == 1
+
+
 def markdown_table(rows: List[dict]) -> str:
-    """Mean +- std over seeds per (scene, protocol, selector)."""
+    """Mean +- std over seeds per (scene, protocol, selector); times from solo runs only (one run per GPU; "–"
+    when every run of the row shared its GPU). Repeats (`--repeats`) are left out."""
     groups: Dict[Tuple[str, str, str], List[dict]] = {}
     for r in rows:
-        groups.setdefault((r["scene"], r["protocol"], r["selector"]), []).append(r)
+        if not r.get("repeat"):
+            groups.setdefault((r["scene"], r["protocol"], r["selector"]), []).append(r)
     lines = [
-        "| scene | protocol | selector | seeds | views | PSNR | SSIM | LPIPS | devices | wall (s) | selection (s) |",
+        "| scene | protocol | selector | seeds | views | PSNR | SSIM | LPIPS | devices | wall (s, solo) | selection (s, solo) |",
         "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     order = {name: i for i, name in enumerate(row_order())}
@@ -72,12 +86,13 @@ def markdown_table(rows: List[dict]) -> str:
             digits = 2 if key == "psnr" else 3
             # One seed has no spread to show (a "± 0.00" would read as a measured one).
             cells.append(f"{m:.{digits}f} ± {s:.{digits}f}" if len(group) > 1 else f"{m:.{digits}f}")
-        wall, _ = _mean_std([g["wall_seconds"] for g in group])
-        selt, _ = _mean_std([g["selection_seconds"] for g in group])
+        alone = [g for g in group if solo(g)]
+        wall = f"{_mean_std([g['wall_seconds'] for g in alone])[0]:.0f}" if alone else "–"
+        selt = f"{_mean_std([g['selection_seconds'] for g in alone])[0]:.1f}" if alone else "–"
         views = group[0]["num_views_final"]
         devices = device_counts(group)
         lines.append(
-            f"| {scene} | {protocol} | {sel} | {len(group)} | {views} | {' | '.join(cells)} | {devices} | {wall:.0f} | {selt:.1f} |"
+            f"| {scene} | {protocol} | {sel} | {len(group)} | {views} | {' | '.join(cells)} | {devices} | {wall} | {selt} |"
         )
     return "\n".join(lines) + "\n"
 
@@ -318,3 +333,201 @@ def stress_table(rows: List[dict]) -> str:
             lines.append(f"| {sel} | {clean_cell} | {' | '.join(cells)} | {avg} |")
         lines.append("")
     return "\n".join(lines)
+
+
+# ------------------------------------------------------------------------------------------------------------
+# Paired comparisons (which selector to use), noise, throughput
+
+
+def comparable(rows: List[dict]) -> List[dict]:
+    """The rows comparisons are made from: first repeats only, no smoke-check scenes, no stress copies."""
+    return [r for r in rows if not r.get("repeat") and not r.get("smoke") and "+" not in r["scene"]]
+
+
+def comparison_plan(rows: List[dict], protocol: str, default: str = "hpgs") -> Tuple[List[Tuple[str, str]], List[Tuple[str, str]]]:
+    """(primary, other) comparisons of one protocol, fixed before looking at any gain: each selector against
+    `random`, and the default selector against the other selector with the highest mean PSNR over scenes; every
+    other pair of selectors is secondary (Holm-adjusted)."""
+    order = {name: i for i, name in enumerate(row_order())}
+    selectors = sorted({r["selector"] for r in rows if r["protocol"] == protocol and r["selector"] not in REFERENCES},
+                       key=lambda s: (order.get(s, 99), s))
+    primary = [(s, BASELINE) for s in selectors if s != BASELINE and BASELINE in selectors]
+    others = [s for s in selectors if s not in (default, BASELINE)]
+    if default in selectors and others:
+        def scene_mean(sel: str) -> float:
+            by_scene: Dict[str, List[float]] = {}
+            for r in rows:
+                if r["protocol"] == protocol and r["selector"] == sel:
+                    by_scene.setdefault(r["scene"], []).append(r["test"]["psnr"])
+            return sum(sum(v) / len(v) for v in by_scene.values()) / max(len(by_scene), 1)
+
+        primary.append((default, max(others, key=scene_mean)))
+    secondary = [(a, b) for i, a in enumerate(selectors) for b in selectors[i + 1:]
+                 if (a, b) not in primary and (b, a) not in primary]
+    return primary, secondary
+
+
+def paired_report(rows: List[dict]) -> str:
+    """Per protocol: the scenes (training and test views), the paired gain over random per scene, and the
+    comparisons with their 95% intervals and verdicts, for PSNR, SSIM and LPIPS."""
+    rows = comparable(rows)
+    out: List[str] = []
+    for protocol in sorted({r["protocol"] for r in rows}):
+        group = [r for r in rows if r["protocol"] == protocol]
+        primary, secondary = comparison_plan(group, protocol)
+        if not primary:
+            continue
+        out += [f"### {protocol} protocol", "", scenes_table(group), ""]
+        for sel, _ in [p for p in primary if p[1] == BASELINE]:
+            gains = stats.paired_gains(group, sel, BASELINE, protocol, "psnr")
+            out += [f"PSNR gain of `{sel}` over `random`, per scene (seeds paired):", "",
+                    stats.scene_table(stats.scene_summaries(gains), "psnr"), ""]
+        sentences = []
+        for metric in METRICS:
+            comparisons = stats.compare(group, protocol, secondary, metric=metric, primary=primary)
+            out += [f"**{metric.upper()}**", "", stats.comparison_table(comparisons), ""]
+            if metric == "psnr":
+                sentences = [verdict_sentence(c) for c in comparisons if c.n_scenes]
+        out += ["In words (PSNR): " + " ".join(sentences), ""]
+    return "\n".join(out)
+
+
+def verdict_sentence(c: "stats.Comparison") -> str:
+    """One README sentence: a ranking only where the comparison's verdict holds, else "indistinguishable"."""
+    d = stats.DIGITS[c.metric]
+    gain = f"`{c.selector}` - `{c.baseline}` {c.estimate:+.{d}f} dB, 95% CI [{c.lo:+.{d}f}, {c.hi:+.{d}f}], {c.n_scenes} scenes"
+    if c.verdict == stats.INDISTINGUISHABLE:
+        return f"`{c.selector}` and `{c.baseline}` are indistinguishable here ({gain})."
+    better, worse = (c.selector, c.baseline) if c.lo > 0 else (c.baseline, c.selector)
+    kind = "primary" if c.primary else "Holm-adjusted"
+    return f"`{better}` beats `{worse}` ({gain}, p = {c.p_adjusted:.3g}, {kind})."
+
+
+def scenes_table(rows: List[dict]) -> str:
+    """Each scene's training and test views and the seeds run (small test sets make PSNR partly a matter of
+    which test viewpoints the picks sit near)."""
+    lines = ["| scene | training views | test views | seeds |", "|---|---|---|---|"]
+    for scene in sorted({r["scene"] for r in rows}):
+        group = [r for r in rows if r["scene"] == scene]
+        train = max((r.get("num_train_views") or r["num_views_final"] for r in group if r["selector"] == "all"), default=None)
+        train = train or max((r.get("num_train_views") or 0 for r in group), default=0) or "?"
+        seeds = sorted({r["seed"] for r in group if r["selector"] not in REFERENCES})
+        lines.append(f"| {scene} | {train} | {group[0].get('num_test_views', '?')} | {', '.join(map(str, seeds))} |")
+    return "\n".join(lines)
+
+
+def noise_table(rows: List[dict]) -> str:
+    """Repeat noise against seed spread: the standard deviation of test PSNR over repeats of one (scene,
+    selector, seed), averaged over seeds, beside the one over seeds (first repeats); "" without repeats."""
+    repeated: Dict[Tuple[str, str, str], Dict[int, List[float]]] = {}
+    for r in rows:
+        repeated.setdefault((r["scene"], r["protocol"], r["selector"]), {}).setdefault(r["seed"], []).append(r["test"]["psnr"])
+    keys = [k for k, by_seed in repeated.items() if any(len(v) > 1 for v in by_seed.values())]
+    if not keys:
+        return ""
+    lines = ["| scene | protocol | selector | repeats x seeds | repeat SD (dB) | seed SD (dB) |", "|---|---|---|---|---|---|"]
+    for key in sorted(keys):
+        by_seed = repeated[key]
+        rep = [_mean_std(v)[1] for v in by_seed.values() if len(v) > 1]
+        firsts = [v[0] for v in by_seed.values()]
+        seed_sd = f"{_mean_std(firsts)[1]:.2f}" if len(firsts) > 1 else "–"
+        reps = max(len(v) for v in by_seed.values())
+        lines.append(f"| {key[0]} | {key[1]} | {key[2]} | {reps} x {len(by_seed)} | {sum(rep) / len(rep):.2f} | {seed_sd} |")
+    return "\n".join(lines) + "\n"
+
+
+def throughput_table(rows: List[dict]) -> str:
+    """Runs per hour per device and runs-per-GPU, over each sweep's span (first start to last end); "" without
+    timestamps."""
+    sweeps: Dict[str, List[dict]] = {}
+    for r in rows:
+        if r.get("sweep_id") and r.get("started_at"):
+            sweeps.setdefault(r["sweep_id"], []).append(r)
+    if not sweeps:
+        return ""
+    lines = ["| device | runs per GPU | runs | span (s) | runs per hour | mean wall per run (s) |", "|---|---|---|---|---|---|"]
+    for sweep in sorted(sweeps.values(), key=lambda g: (short_device(g[0]), g[0].get("runs_per_gpu", 1), min(r["started_at"] for r in g))):
+        span = max(r["started_at"] + r["wall_seconds"] for r in sweep) - min(r["started_at"] for r in sweep)
+        wall = sum(r["wall_seconds"] for r in sweep) / len(sweep)
+        lines.append(f"| {short_device(sweep[0])} | {sweep[0].get('runs_per_gpu', 1)} | {len(sweep)} | {span:.0f} | "
+                     f"{3600 * len(sweep) / span:.1f} | {wall:.0f} |")
+    return "\n".join(lines) + "\n"
+
+
+def gain_plot(rows: List[dict], out: Path) -> List[Path]:
+    """Per protocol: each selector's paired PSNR gain over random, one dot per (scene, seed), with the mean over
+    scenes and its 95% hierarchical-bootstrap interval."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = comparable(rows)
+    paths = []
+    for protocol in sorted({r["protocol"] for r in rows}):
+        group = [r for r in rows if r["protocol"] == protocol]
+        primary, _ = comparison_plan(group, protocol)
+        selectors = [a for a, b in primary if b == BASELINE]
+        if not selectors:
+            continue
+        scenes = sorted({r["scene"] for r in group})
+        fig, ax = plt.subplots(figsize=(1.6 * len(selectors) + 3, 4))
+        for i, sel in enumerate(selectors):
+            gains = stats.paired_gains(group, sel, BASELINE, protocol, "psnr")
+            for j, scene in enumerate(scenes):
+                values = list(gains.get(scene, {}).values())
+                xs = [i - 0.25 + 0.5 * (j + 0.5) / len(scenes)] * len(values)
+                ax.scatter(xs, values, s=14, color=f"C{j}", label=scene if i == 0 else None, zorder=3)
+            if gains:
+                est, lo, hi = stats.hierarchical_bootstrap(gains)
+                ax.errorbar([i + 0.32], [est], yerr=[[est - lo], [hi - est]], fmt="D", color="k", capsize=4, zorder=4)
+        ax.axhline(0, color="grey", lw=0.8)
+        ax.set_xticks(range(len(selectors)), selectors)
+        ax.set(ylabel="test PSNR gain over random (dB)",
+               title=f"{protocol}: paired gain over random (dots: scene x seed; diamond: mean over scenes, 95% CI)")
+        ax.title.set_fontsize(9)
+        ax.legend(fontsize=7, loc="best")
+        fig.tight_layout()
+        path = out / f"{protocol}-paired-gains.png"
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+        paths.append(path)
+    return paths
+
+
+def write_report(out: Path, readme: Optional[Path] = None) -> List[Path]:
+    """Every table and plot of a results folder; with `readme`, its results section too (between
+    `<!-- bench:OUT:begin -->` and `<!-- bench:OUT:end -->`). Returns the files written."""
+    rows = load_results(out)
+    written = []
+    sections = {"table.md": markdown_table(rows), "paired.md": paired_report(rows), "work.md": work_table(rows),
+                "noise.md": noise_table(rows), "throughput.md": throughput_table(rows), "stress.md": stress_table(rows)}
+    for name, text in sections.items():
+        if text:
+            written.append(write_text_atomic(out / name, text))
+    written += stress_plot(rows, out) + make_plots(rows, out) + gain_plot(rows, out)
+    if readme is not None:
+        written.append(replace_section(readme, f"bench:{out.as_posix()}", results_section(out, sections)))
+    return written
+
+
+def results_section(out: Path, sections: Dict[str, str]) -> str:
+    parts = [f"Built by `hpgs bench --out {out.as_posix()} --report-only`; every comparison pairs runs by scene and seed.", ""]
+    if sections["paired.md"]:
+        parts += [sections["paired.md"]]
+    for name, title in (("noise.md", "Repeat noise against seed spread"), ("throughput.md", "Throughput")):
+        if sections[name]:
+            parts += [f"**{title}**", "", sections[name]]
+    return "\n".join(parts)
+
+
+def replace_section(path: Path, marker: str, text: str) -> Path:
+    """Replace what lies between `<!-- MARKER:begin -->` and `<!-- MARKER:end -->` in `path` (one-line error when
+    the markers are missing)."""
+    begin, end = f"<!-- {marker}:begin -->", f"<!-- {marker}:end -->"
+    doc = Path(path).read_text()
+    if begin not in doc or end not in doc:
+        raise SystemExit(f"hpgs bench: {path} has no {begin} ... {end} markers; add them where the results go")
+    head, rest = doc.split(begin, 1)
+    _, tail = rest.split(end, 1)
+    return write_text_atomic(path, f"{head}{begin}\n{text.strip()}\n{end}{tail}")

@@ -1,11 +1,14 @@
 """`hpgs bench`: the command, and launching its runs (each one a real `ns-train hpgs` in a subprocess).
 
-One run per (scene, protocol, selector, seed), plus two reference rows per (scene, protocol, seed):
+One run per (scene, protocol, selector, seed), plus two reference rows per (scene, protocol, reference seed):
 `initial` (no views added) and `all` (every training view). Each run writes
-`OUT/<scene>/<protocol>/<selector>/seed<k>.json`; runs whose JSON exists are skipped, so a killed sweep resumes.
-`hpgs bench --report-only` rebuilds the markdown table and the plots from whatever JSON is there (`report`).
-`hpgs bench --stress pose-noise exposure corrupt` also runs every scene perturbed (`stress`): copies
-`OUT/_scenes/<scene>+<perturbation>`, results under `OUT/<scene>+<perturbation>/`, and `stress.md` beside `table.md`.
+`OUT/<scene>/<protocol>/<selector>/seed<k>.json` (`seed<k>-repeat<r>.json` for `--repeats`); runs whose JSON
+exists are skipped, so a killed sweep resumes, and a finished run made with other settings (code, preference
+model, selector options, schedule, dataparser options, ...) is a one-line error rather than mixed in.
+`hpgs bench --report-only` rebuilds the tables and the plots from whatever JSON is there (`report`).
+Scenes come from `--scenes` (folders) or a suite (`--suite real6`, `suites`), which also gives each scene's
+dataparser and options. `hpgs bench --stress pose-noise exposure corrupt` also runs every scene perturbed
+(`stress`): copies `OUT/_scenes/<scene>+<perturbation>`, results under `OUT/<scene>+<perturbation>/`.
 """
 
 from __future__ import annotations
@@ -15,22 +18,25 @@ import json
 import os
 import shlex
 import shutil
+import socket
 import subprocess
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Dict, List, Literal, Optional, Sequence, Tuple
+from typing import Any, Dict, List, Literal, NamedTuple, Optional, Sequence, Tuple
 
 import tyro
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-from hpgs_ns.atomic_write import write_json_atomic, write_text_atomic
+from hpgs_ns.atomic_write import write_json_atomic
+from hpgs_ns.bench import provenance
 from hpgs_ns.bench.executors import ExecutorConfig, make_executor
 from hpgs_ns.bench.protocols import DEFAULT_SELECTORS, PROTOCOLS, REFERENCES, Protocol, scaled
-from hpgs_ns.bench.report import load_results, make_plots, markdown_table, stress_plot, stress_table, work_table
-from hpgs_ns.bench.stress import PerturbationName, StressConfig, StressError, stressed_scenes
-from hpgs_ns.dataparser import SceneDataError, scene_dataparser
+from hpgs_ns.bench.report import write_report
+from hpgs_ns.bench.stress import PerturbationName, StressConfig, StressError, perturbed_copy
+from hpgs_ns.bench.suites import SYNTHETIC, Scene, SuiteError, load_suite, scene_from_folder
+from hpgs_ns.dataparser import SceneDataError
 from hpgs_ns.ns_train import ns_train_command
 
 CONSOLE = Console(stderr=True)
@@ -44,12 +50,24 @@ class Bench:
     """Scene folders (Mip-NeRF 360 layout with sparse/0, read by `mipnerf360`; or transforms.json, read by
     `nerfstudio-data`), or `synthetic:ring`, `synthetic:occluded`, `synthetic:sparse-objects` for the embedded
     procedural scenes (generated into OUT/_scenes on first use)."""
+    suite: Optional[str] = None
+    """A suite of scenes with their dataparsers and options: a shipped one (`real6`: the six real captures in
+    shared/data at half size, plus a synthetic smoke scene) or a .toml file (see `hpgs_ns/bench/suites.py`)."""
+    suite_scenes: List[str] = field(default_factory=list)
+    """Only these scenes of the suite (default: all)."""
+    data_root: Path = Path("../shared/data")
+    """Where the suite's scene paths are."""
     out: Path = Path("benchmarks/results/bench")
-    """Results folder (one JSON per run; table and plots beside)."""
+    """Results folder (one JSON per run; tables and plots beside)."""
     selectors: List[str] = field(default_factory=lambda: list(DEFAULT_SELECTORS))
     """Selectors to run (any registered name)."""
     seeds: List[int] = field(default_factory=lambda: [0, 1, 2])
-    """Seeds: initial random views, selector randomness and torch."""
+    """Seeds: initial random views, selector randomness and torch. A seed pairs runs of different selectors."""
+    reference_seeds: Optional[List[int]] = None
+    """Seeds of the `initial`/`all` reference rows (default: the same as `--seeds`)."""
+    repeats: int = 1
+    """Run each (scene, selector, seed) this many times: the spread of repeats is the noise a seed cannot fix
+    (gsplat's non-deterministic backward, densification)."""
     protocols: List[Literal["hpgs", "fisherrf"]] = field(default_factory=lambda: ["hpgs"])
     """View-addition protocols."""
     references: bool = True
@@ -61,7 +79,7 @@ class Bench:
     max_runs: Optional[int] = None
     """Stop after this many new runs (fit a sweep into a time budget; re-run to continue)."""
     downscale_factor: Optional[int] = None
-    """Dataparser downscale factor (e.g. 2 for the shared bonsai-device images_2)."""
+    """Dataparser downscale factor for every scene (overrides the suite's; e.g. 2 for the shared bonsai-device images_2)."""
     rasterizer: Literal["auto", "gsplat", "cpu"] = "auto"
     """Rasterizer for all runs."""
     reset_after_add: bool = False
@@ -72,74 +90,78 @@ class Bench:
     """Extra `ns-train hpgs` arguments for every run (quoted). A finished run made with other arguments is an
     error on resume, not skipped: pass another `--out`."""
     report_only: bool = False
-    """Only rebuild the table and plots from existing JSON."""
+    """Only rebuild the tables and plots from existing JSON."""
+    readme: Optional[Path] = None
+    """Also write the results section into this markdown file, between `<!-- bench:OUT:begin -->` and
+    `<!-- bench:OUT:end -->` (OUT as given by --out)."""
     stress: List[PerturbationName] = field(default_factory=list)
     """Also run every scene under these perturbations of its training views (copies in OUT/_scenes)."""
     stress_config: StressConfig = field(default_factory=StressConfig)
     """Strength and seed of each perturbation."""
     cluster: tyro.conf.OmitArgPrefixes[ExecutorConfig] = field(default_factory=ExecutorConfig)
-    """Where the runs execute (`--executor local|ray|slurm` and its options)."""
+    """Where the runs execute (`--executor local|ray|slurm`, `--runs-per-gpu N` and their options)."""
 
     def main(self) -> None:
         if not self.report_only:
-            self.scenes = resolve_scenes(self.scenes, self.out / "_scenes")
-        if self.stress and not self.report_only:
             try:
-                self.scenes = stressed_scenes(self.scenes, self.stress, self.out / "_scenes", self.stress_config)
-            except StressError as err:
+                scenes = self.scene_list()
+            except (SuiteError, SceneDataError, StressError) as err:
                 raise SystemExit(f"hpgs bench: {err}") from None
-        if not self.report_only:
-            self.run_all()
-        rows = load_results(self.out)
-        if not rows:
+            self.run_all(scenes)
+        if not any(self.out.glob("*/*/*/seed*.json")):
             raise SystemExit(f"hpgs bench: no results under {self.out}")
-        table = markdown_table(rows)
-        write_text_atomic(self.out / "table.md", table)
-        print(table)
-        work = work_table(rows)
-        if work:
-            write_text_atomic(self.out / "work.md", work)
-            print(work)
-        stress = stress_table(rows)
-        if stress:
-            write_text_atomic(self.out / "stress.md", stress)
-            print(stress)
-            for path in stress_plot(rows, self.out):
-                CONSOLE.print(f"plot: {path}")
-        for path in make_plots(rows, self.out):
-            CONSOLE.print(f"plot: {path}")
+        for path in write_report(self.out, readme=self.readme):
+            CONSOLE.print(f"wrote {path}")
 
-    def jobs(self) -> List[Tuple[Path, Protocol, str, int]]:
+    def scene_list(self) -> List[Scene]:
+        """The scenes to run: `--scenes` folders, then the suite's; synthetic ones generated, stress copies made."""
+        scenes = [scene_from_folder(Path(s)) for s in self.scenes]
+        if self.suite is not None:
+            scenes += load_suite(self.suite, self.data_root, self.suite_scenes)
+        scenes = resolve_scenes(scenes, self.out / "_scenes")
+        if self.downscale_factor is not None:
+            scenes = [s.with_options(**{"downscale-factor": str(self.downscale_factor)}) for s in scenes]
+        if self.stress:
+            copies = []
+            for scene in scenes:
+                for name in self.stress:
+                    copy = perturbed_copy(scene.path, name, self.out / "_scenes", self.stress_config)
+                    CONSOLE.print(f"stress: {copy}")
+                    copies.append(dataclasses.replace(scene, name=f"{scene.name}+{name}", path=copy))
+            scenes += copies
+        return scenes
+
+    def jobs(self, scenes: Optional[Sequence[Scene]] = None) -> List["Job"]:
+        """Every run, seed by seed: a sweep cut short has whole (scene, seed) pairs of every selector first."""
+        scenes = list(scenes) if scenes is not None else [scene_from_folder(Path(s)) for s in self.scenes]
+        reference_seeds = self.seeds if self.reference_seeds is None else self.reference_seeds
         jobs = []
-        for scene in self.scenes:
-            for pname in self.protocols:
-                protocol = scaled(PROTOCOLS[pname], self.step_scale)
-                if self.reset_after_add:
-                    protocol = dataclasses.replace(protocol, name=f"{protocol.name}-reset")
-                if self.strict_init:
-                    protocol = dataclasses.replace(protocol, name=f"{protocol.name}-strict")
-                for seed in self.seeds:
-                    names = list(self.selectors) + (list(REFERENCES) if self.references else [])
+        for seed in sorted(set(self.seeds) | set(reference_seeds if self.references else [])):
+            for scene in scenes:
+                for pname in self.protocols:
+                    protocol = scaled(PROTOCOLS[pname], self.step_scale)
+                    if self.reset_after_add:
+                        protocol = dataclasses.replace(protocol, name=f"{protocol.name}-reset")
+                    if self.strict_init:
+                        protocol = dataclasses.replace(protocol, name=f"{protocol.name}-strict")
+                    names = list(self.selectors) if seed in self.seeds else []
+                    names += list(REFERENCES) if self.references and seed in reference_seeds else []
                     for name in names:
-                        jobs.append((scene, protocol, name, seed))
+                        for repeat in range(self.repeats if name not in REFERENCES else 1):
+                            jobs.append(Job(scene, protocol, name, seed, repeat))
         return jobs
 
-    def run_all(self) -> None:
-        for scene in self.scenes:
-            try:
-                scene_dataparser(scene)
-            except SceneDataError as err:
-                raise SystemExit(f"hpgs bench: {err}") from None
+    def run_all(self, scenes: Optional[Sequence[Scene]] = None) -> None:
         todo = []
-        for job in self.jobs():
-            path = result_path(self.out, job[0], job[1].name, job[2], job[3])
+        for job in self.jobs(scenes):
+            path = job.result_path(self.out)
             if not path.exists():
                 todo.append(job)
                 continue
             made_with = json.loads(path.read_text()).get("settings")  # absent in results older than this check
-            settings = run_settings(self, job[1])
+            settings = run_settings(self, job)
             if made_with is not None and made_with != settings:
-                changed = ", ".join(k for k in made_with if made_with[k] != settings.get(k))
+                changed = ", ".join(k for k in sorted(set(made_with) | set(settings)) if made_with.get(k) != settings.get(k))
                 raise SystemExit(
                     f"hpgs bench: {path} was made with other settings ({changed}); pass another --out to keep both, "
                     "or delete it to re-run"
@@ -150,19 +172,45 @@ class Bench:
         run_sweep(self, todo, self.cluster)
 
 
-SYNTHETIC = "synthetic:"
+class Job(NamedTuple):
+    """One run of a sweep."""
+
+    scene: Scene
+    protocol: Protocol
+    name: str
+    """A selector, or a reference row (`initial`, `all`)."""
+    seed: int
+    repeat: int = 0
+
+    @property
+    def label(self) -> str:
+        return f"{self.scene.name}/{self.protocol.name}/{self.name}/{self.stem}"
+
+    @property
+    def stem(self) -> str:
+        return f"seed{self.seed}" + (f"-repeat{self.repeat}" if self.repeat else "")
+
+    def result_path(self, out: Path) -> Path:
+        return out / self.scene.name / self.protocol.name / self.name / f"{self.stem}.json"
+
+    def log_path(self, out: Path) -> Path:
+        return out / "_runs" / f"{self.scene.name}-{self.protocol.name}-{self.name}-{self.stem}.log"
+
+    def run_folder(self, run_root: Path) -> Path:
+        """Where ns-train writes the run (its `--output-dir`/`--experiment-name`/method/`--timestamp`)."""
+        return run_root / self.scene.name / "hpgs" / f"{self.protocol.name}-{self.name}-{self.stem}"
 
 
-def resolve_scenes(scenes: Sequence[Path], folder: Path) -> List[Path]:
-    """`synthetic:<layout>` (ring, occluded, sparse-objects) -> the embedded procedural scene of that layout,
-    generated into `folder/synthetic-<layout>` on first use; other entries are scene folders, returned as given."""
+def resolve_scenes(scenes: Sequence[Scene], folder: Path) -> List[Scene]:
+    """`synthetic:<layout>` (ring, occluded, sparse-objects) scenes -> the embedded procedural scene of that
+    layout, generated into `folder/synthetic-<layout>` on first use; other scenes are returned as given."""
     from hpgs_ns.scenes.synthetic import LAYOUTS, make_scene
 
     out = []
     for scene in scenes:
-        text = str(scene)
+        text = str(scene.path)
         if not text.startswith(SYNTHETIC):
-            out.append(Path(scene))
+            out.append(scene)
             continue
         layout = text[len(SYNTHETIC):]
         if layout not in LAYOUTS:
@@ -171,25 +219,13 @@ def resolve_scenes(scenes: Sequence[Path], folder: Path) -> List[Path]:
         if not (path / "sparse" / "0").is_dir():
             CONSOLE.print(f"generating {text} into {path}")
             make_scene(path, layout=layout, seed=0, overwrite=True)
-        out.append(path)
+        out.append(dataclasses.replace(scene, path=path))
     return out
 
 
-def result_path(out: Path, scene: Path, protocol: str, name: str, seed: int) -> Path:
-    return out / scene.name / protocol / name / f"seed{seed}.json"
-
-
-def run_log_path(out: Path, scene: Path, protocol: str, name: str, seed: int) -> Path:
-    return out / "_runs" / f"{scene.name}-{protocol}-{name}-seed{seed}.log"
-
-
-def run_folder(run_root: Path, scene: Path, protocol: str, name: str, seed: int) -> Path:
-    """Where ns-train writes one run (its `--output-dir`/`--experiment-name`/method/`--timestamp`)."""
-    return run_root / scene.name / "hpgs" / f"{protocol}-{name}-seed{seed}"
-
-
-def train_args(bench: Bench, scene: Path, protocol: Protocol, name: str, seed: int, run_root: Path) -> List[str]:
+def train_args(bench: Bench, job: Job, run_root: Path) -> List[str]:
     """The `ns-train hpgs` command of one run."""
+    protocol, name, seed = job.protocol, job.name, job.seed
     initial = bench.initial_views or protocol.initial_views
     selector, rounds = name, protocol.max_rounds
     if name == "initial":
@@ -213,37 +249,44 @@ def train_args(bench: Bench, scene: Path, protocol: Protocol, name: str, seed: i
     if bench.strict_init:
         datamanager["strict-init"] = True
     return ns_train_command(
-        scene, run_root, scene.name, f"{protocol.name}-{name}-seed{seed}", protocol.steps,
+        job.scene.path, run_root, job.scene.name, job.run_folder(run_root).name, protocol.steps,
         # ns-eval's JSON, written by the training process (hpgs_ns/trainer.py): no second start-up per run
-        trainer={"machine.seed": seed, "final-eval-json": run_folder(run_root, scene, protocol.name, name, seed) / "eval.json"},
+        trainer={"machine.seed": seed, "final-eval-json": job.run_folder(run_root) / "eval.json"},
         datamanager=datamanager, model={"rasterizer": bench.rasterizer}, extra=shlex.split(bench.extra_args),
-        dataparser=scene_dataparser(scene),
-        dataparser_options={} if bench.downscale_factor is None else {"downscale-factor": bench.downscale_factor},
+        dataparser=job.scene.dataparser, dataparser_options=job.scene.option_dict(),
     )
 
 
-def run_settings(bench: Bench, protocol: Protocol) -> dict:
-    """What changes a run's numbers without changing its result path (checked when a sweep resumes)."""
+def run_settings(bench: Bench, job: Job) -> dict:
+    """What changes a run's numbers without changing its result path (checked when a sweep resumes): the
+    schedule, the dataparser and its options, the code that trains and selects, the selector's options and its
+    preference model."""
+    selector = None if job.name in REFERENCES else job.name
+    options = provenance.selector_options(selector, shlex.split(bench.extra_args)) if selector else None
     return {
-        "steps": protocol.steps,
-        "initial_views": bench.initial_views or protocol.initial_views,
-        "downscale_factor": bench.downscale_factor,
+        "steps": job.protocol.steps,
+        "initial_views": bench.initial_views or job.protocol.initial_views,
+        "dataparser": job.scene.dataparser,
+        "dataparser_options": job.scene.option_dict(),
         "rasterizer": bench.rasterizer,
         "extra_args": bench.extra_args,
+        "code": provenance.code_hash(selector),
+        "selector_options": options,
+        "preference_model": provenance.preference_model_hash(selector, options) if selector else None,
     }
 
 
-def run_one(
-    bench: Bench, scene: Path, protocol: Protocol, name: str, seed: int, env: Optional[Dict[str, str]] = None
-) -> dict:
-    """Train and evaluate one run in a subprocess with environment `env` (default: this process's)."""
+def run_one(bench: Bench, job: Job, env: Optional[Dict[str, str]] = None, sweep_id: Optional[str] = None) -> dict:
+    """Train and evaluate one run in a subprocess with environment `env` (default: this process's). `sweep_id`
+    names the sweep it was part of (the report's throughput groups runs by it)."""
     run_root = bench.out / "_runs"
-    cmd = train_args(bench, scene, protocol, name, seed, run_root)
-    run_dir = run_folder(run_root, scene, protocol.name, name, seed)
+    cmd = train_args(bench, job, run_root)
+    run_dir = job.run_folder(run_root)
     # A run killed half-way left events and checkpoints there; timing and eval must see only this run's.
     shutil.rmtree(run_dir, ignore_errors=True)
+    started = time.time()
     start = time.perf_counter()
-    log_path = run_log_path(bench.out, scene, protocol.name, name, seed)
+    log_path = job.log_path(bench.out)
     log_path.parent.mkdir(parents=True, exist_ok=True)
     with open(log_path, "w") as log:
         proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env)
@@ -257,19 +300,25 @@ def run_one(
     selected = json.loads((run_dir / "selected_views.json").read_text())
     rounds = selected["rounds"]
     return {
-        "scene": scene.name,
-        "protocol": protocol.name,
-        "selector": name,
-        "seed": seed,
-        "steps": protocol.steps,
+        "scene": job.scene.name,
+        "protocol": job.protocol.name,
+        "selector": job.name,
+        "seed": job.seed,
+        "repeat": job.repeat,
+        "smoke": job.scene.smoke,
+        "steps": job.protocol.steps,
         "test": metrics["results"],
         "num_test_views": len(selected["test"]),
+        "num_train_views": len(selected["active"]) + len(selected["withheld"]),
         "num_views_final": len(selected["active"]),
         "psnr_per_round": [
             {"step": r["step"], "num_views_before": r["num_active"] - len(r["chosen"]), "test_psnr": r["test_psnr_before"]}
             for r in rounds
         ],
         "wall_seconds": wall,
+        "started_at": started,
+        "sweep_id": sweep_id,
+        "runs_per_gpu": bench.cluster.runs_per_gpu,
         "selection_seconds": float(sum(r["seconds"] for r in rounds)),
         "selection_seconds_per_round": [r["seconds"] for r in rounds],
         "selection_work": summed_work(rounds),
@@ -278,7 +327,8 @@ def run_one(
         "initial_views": selected["initial"],
         "chosen_views": [v for r in rounds for v in r["chosen"]],
         "command": shlex.join(cmd),
-        "settings": run_settings(bench, protocol),
+        "settings": run_settings(bench, job),
+        "provenance": {"git_commit": provenance.git_commit(), **library_versions()},
         "device": device_name(),
     }
 
@@ -323,26 +373,32 @@ def device_name() -> str:
     return torch.cuda.get_device_name(0) if torch.cuda.is_available() else f"cpu x{os.cpu_count()}"
 
 
-Job = Tuple[Path, Protocol, str, int]  # (scene, protocol, selector or reference name, seed), as `Bench.jobs()` lists
+def library_versions() -> Dict[str, Optional[str]]:
+    from importlib.metadata import PackageNotFoundError, version
+
+    import hpgs_ns
+
+    out: Dict[str, Optional[str]] = {"hpgs_ns": hpgs_ns.__version__}
+    for name in ("torch", "gsplat", "nerfstudio"):
+        try:
+            out[name] = version(name)
+        except PackageNotFoundError:
+            out[name] = None
+    return out
 
 
-def run_label(job: Job) -> str:
-    scene, protocol, name, seed = job
-    return f"{scene.name}/{protocol.name}/{name}/seed{seed}"
-
-
-def sweep_worker(item: Tuple[Any, Job], env: Dict[str, str]) -> dict:
+def sweep_worker(item: Tuple[Bench, Job, str], env: Dict[str, str]) -> dict:
     """Worker side: train and evaluate one run, write its JSON, return `{"result": ...}` or `{"error", "log"}`."""
-    bench, (scene, protocol, name, seed) = item
+    bench, job, sweep_id = item
     try:
-        result = run_one(bench, scene, protocol, name, seed, env={**os.environ, **env})
+        result = run_one(bench, job, env={**os.environ, **env}, sweep_id=sweep_id)
     except (Exception, SystemExit) as exc:  # run_one exits on a failed training; keep the worker alive
-        return {"error": str(exc), "log": str(run_log_path(bench.out, scene, protocol.name, name, seed))}
-    write_json_atomic(result_path(bench.out, scene, protocol.name, name, seed), result)
+        return {"error": str(exc), "log": str(job.log_path(bench.out))}
+    write_json_atomic(job.result_path(bench.out), result)
     return {"result": result}
 
 
-def run_sweep(bench: Any, jobs: Sequence[Job], config: ExecutorConfig) -> None:
+def run_sweep(bench: Bench, jobs: Sequence[Job], config: ExecutorConfig) -> None:
     """Driver side: run `jobs` on the configured executor; every finished run's JSON ends up under `bench.out`.
 
     Every worker writes its run's JSON itself (temp file + rename) as well: a run that finishes while the driver is
@@ -350,28 +406,29 @@ def run_sweep(bench: Any, jobs: Sequence[Job], config: ExecutorConfig) -> None:
     if not jobs:
         return
     # Absolute paths: Ray workers and Slurm jobs need not start in this folder.
-    bench = replace(bench, out=bench.out.resolve(), scenes=[s.resolve() for s in bench.scenes])
-    jobs = [(scene.resolve(), protocol, name, seed) for scene, protocol, name, seed in jobs]
+    bench = replace(bench, out=bench.out.resolve())
+    jobs = [job._replace(scene=dataclasses.replace(job.scene, path=job.scene.path.resolve())) for job in jobs]
     executor = make_executor(config, bench.out)
-    CONSOLE.print(f"hpgs bench: {len(jobs)} runs to do ({config.executor})")
+    sweep_id = f"{socket.gethostname()}-{int(time.time())}"
+    CONSOLE.print(f"hpgs bench: {len(jobs)} runs to do ({config.executor}, {config.runs_per_gpu} per GPU)")
     failures: List[str] = []
     columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
     with Progress(*columns, console=CONSOLE) as progress:
         bar = progress.add_task("runs", total=len(jobs))
-        for done in executor.map(sweep_worker, [(bench, job) for job in jobs]):
+        for done in executor.map(sweep_worker, [(bench, job, sweep_id) for job in jobs]):
             job = jobs[done.index]
             value = done.value or {"error": done.error, "log": None}
             if "result" in value:
                 result = value["result"]
-                path = result_path(bench.out, job[0], job[1].name, job[2], job[3])
+                path = job.result_path(bench.out)
                 if not path.exists():  # the worker wrote it unless it ran on another filesystem
                     write_json_atomic(path, result)
                 progress.console.print(
-                    f"{run_label(job)}  PSNR {result['test']['psnr']:.2f}  wall {result['wall_seconds']:.0f} s  "
+                    f"{job.label}  PSNR {result['test']['psnr']:.2f}  wall {result['wall_seconds']:.0f} s  "
                     f"selection {result['selection_seconds']:.1f} s"
                 )
             else:
-                failures.append(f"{run_label(job)} (log: {value['log']})")
+                failures.append(f"{job.label} (log: {value['log']})")
                 last = (value["error"] or "").strip().splitlines()
                 progress.console.print(f"[red]failed: {failures[-1]}: {last[-1] if last else ''}")
             progress.advance(bar)

@@ -207,17 +207,6 @@ def perturbed_copy(scene: Path, name: str, out_dir: Path, config: Optional[Stres
     return target
 
 
-def stressed_scenes(scenes: Sequence[Path], names: Sequence[str], out_dir: Path, config: Optional[StressConfig] = None) -> List[Path]:
-    """The scenes followed by each scene's perturbed copies (`hpgs bench --stress`)."""
-    copies = []
-    for scene in scenes:
-        for name in names:
-            copy = perturbed_copy(scene, name, out_dir, config)
-            CONSOLE.print(f"stress: {copy}")
-            copies.append(copy)
-    return list(scenes) + copies
-
-
 def _copy_scene(source: Path, dest: Path) -> None:
     """Copy a scene folder; image files are hard-linked (perturbations replace files, never write into them),
     everything else is copied."""

@@ -1,0 +1,106 @@
+"""What made a benchmark run's numbers: the code, the preference model, every selector option.
+
+Each run records them (`provenance` in its JSON), and the settings a resumed sweep compares include them, so a
+results folder never mixes runs made by other code or another model without saying so.
+
+"The code" is a hash of the source files that can move a run's numbers: the training path (model, datamanager,
+dataparser, rounds, trainer, rasterizers, ...) and the run's own selector. Files that cannot (the benchmark's
+reporting, the viewer, the CLIs, other selectors) are left out, so that a sweep built over several sessions can
+resume across commits that only touch those; `CODE_FILES` and `NOT_CODE_FILES` must between them list every
+module (a test checks). The git commit is recorded beside it, for reading.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import os
+import subprocess
+from pathlib import Path
+from typing import Dict, List, Optional
+
+PACKAGE = Path(__file__).resolve().parent.parent
+
+# Files (relative to hpgs_ns/) whose change can change any run's numbers.
+CODE_FILES = (
+    "cpu_raster.py", "datamanager.py", "dataparser.py", "metrics.py", "method_config.py", "model.py",
+    "offline_weights.py", "pipeline.py", "rounds.py", "schedules.py", "snapshots.py", "trainer.py",
+    "render/pair_render.py", "render/viewmats.py", "scenes/colmap_model.py", "scenes/synthetic.py",
+    "selectors/base.py", "selectors/registry.py",
+)
+# A selector's own files (beside its module `selectors/<module>.py`): the preference model's code for those
+# that run one.
+SELECTOR_FILES = {
+    "hpgs": ("selectors/preference_features.py", "preference/model.py"),
+    "condorcet": ("selectors/preference_features.py", "preference/model.py"),
+}
+# Everything else: cannot change a run's numbers.
+NOT_CODE_FILES = (
+    "__init__.py", "atomic_write.py", "cli.py", "demo.py", "errors.py", "ns_train.py", "viewer.py",
+    "bench/", "preference/", "render/__init__.py", "scenes/__init__.py", "selectors/__init__.py", "selectors/",
+)
+
+
+def code_hash(selector: Optional[str]) -> str:
+    """sha256 of CODE_FILES and the files of `selector` (a registered name; None for reference rows)."""
+    files = list(CODE_FILES)
+    if selector is not None:
+        from hpgs_ns.selectors.registry import BUILTIN_SELECTORS
+
+        config = BUILTIN_SELECTORS.get(selector)
+        if config is not None:
+            module = config.__module__.split(".")[-1]
+            files += [f"selectors/{module}.py", *SELECTOR_FILES.get(selector, ())]
+    digest = hashlib.sha256()
+    for rel in sorted(set(files)):
+        path = PACKAGE / rel
+        digest.update(rel.encode() + b"\0" + (path.read_bytes() if path.is_file() else b"<missing>") + b"\0")
+    return digest.hexdigest()[:16]
+
+
+def file_hash(path: Path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()[:16]
+
+
+def git_commit() -> Optional[str]:
+    """The checkout's commit (with `+dirty` when hpgs_ns/ has uncommitted changes), $HPGS_GIT_COMMIT where there
+    is no git (a copied tree), else None."""
+    try:
+        out = subprocess.run(["git", "-C", str(PACKAGE), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=10)
+        if out.returncode == 0:
+            dirty = subprocess.run(["git", "-C", str(PACKAGE), "diff", "--quiet", "HEAD", "--", "."], timeout=10).returncode
+            return out.stdout.strip() + ("+dirty" if dirty else "")
+    except (OSError, subprocess.SubprocessError):
+        pass
+    return os.environ.get("HPGS_GIT_COMMIT") or None
+
+
+def selector_options(selector: str, extra_args: List[str]) -> Optional[Dict]:
+    """Every option of `selector` as the run will use it: its defaults, with `--pipeline.datamanager.<selector>.*`
+    flags of `extra_args` applied (parsed by tyro, as ns-train does). None for the reference rows."""
+    from hpgs_ns.selectors.registry import selector_config
+
+    if selector in ("initial", "all"):  # reference rows: no selector
+        return None
+    config = selector_config(selector)
+    prefix = f"--pipeline.datamanager.{selector}."
+    own: List[str] = []
+    for i, arg in enumerate(extra_args):
+        if arg.startswith(prefix):
+            own.append("--" + arg[len(prefix):])
+            own += [a for a in extra_args[i + 1 : i + 2] if not a.startswith("--")]
+    if own:
+        import tyro
+
+        config = tyro.cli(type(config), args=own, default=config)
+    return {k: (str(v) if isinstance(v, Path) else v) for k, v in dataclasses.asdict(config).items() if k != "_target"}
+
+
+def preference_model_hash(selector: str, options: Optional[Dict]) -> Optional[str]:
+    """Hash of the preference model a selector loads (None for selectors without one)."""
+    if options is None or "model" not in options:
+        return None
+    from hpgs_ns.selectors.preference_features import DEFAULT_MODEL
+
+    path = Path(options["model"]) if options["model"] else DEFAULT_MODEL
+    return file_hash(path) if path.is_file() else "missing"

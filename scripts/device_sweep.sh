@@ -1,0 +1,49 @@
+#!/usr/bin/env bash
+# Run `hpgs bench` sweeps ON the GPU machine in the background, so they go on between device calls while the
+# machine stays held, and hand back what has finished. The first call carries .dev and the scenes' .devdata/<folder>
+# (scripts/device_suite_data.py); later calls on the still-warm machine need carry nothing more:
+#   HPGS_GIT_COMMIT=<sha> bash scripts/device_sweep.sh start 'ARGS1' 'ARGS2' ...   # one `hpgs bench` per ARGS, in order
+#   bash scripts/device_sweep.sh collect SECONDS     # wait until the plan ends or SECONDS pass; results -> $OUT
+# Every sweep writes to /tmp/suite (seeded with benchmarks/results/suite, so finished runs are skipped) with
+# --data-root .devdata. `collect` packs every result JSON written since `start` into $OUT/results.tgz (the device
+# tool returns at most 8 files) and the log into $OUT/sweep.log; unpack with
+#   tar xzf /work/.device/<call>/results.tgz -C benchmarks/results/suite
+set -o pipefail
+cd "$(dirname "$0")/.."
+bench=/tmp/suite
+case $1 in
+start)
+  shift
+  mkdir -p "$bench"
+  cp -rn benchmarks/results/suite/. "$bench/" 2>/dev/null
+  printf '%s\n' "$@" > /tmp/plan.txt
+  # setsid: the sweep outlives this call (the device tool ends the call's own processes when it returns)
+  setsid nohup bash scripts/device_sweep.sh run /tmp/plan.txt > /tmp/sweep.log 2>&1 < /dev/null &
+  sleep 2
+  echo "started: $(wc -l < /tmp/plan.txt) sweeps"
+  ;;
+run)
+  source .dev/prelude.sh
+  source scripts/device_env.sh
+  while IFS= read -r args; do
+    [ -z "$args" ] && continue
+    echo "=== start $(date +%s): $args"
+    # shellcheck disable=SC2086  # ARGS is a list of words
+    python3 -m hpgs_ns.cli bench --data-root .devdata --out "$bench" $args 2>&1 | grep -E 'PSNR|rror|failed|runs to do|Traceback'
+    echo "=== end $(date +%s)"
+  done < "$2"
+  echo "=== plan finished $(date +%s)"
+  ;;
+collect)
+  end=$(($(date +%s) + $2))
+  while [ "$(date +%s)" -lt "$end" ] && ! grep -q "plan finished" /tmp/sweep.log 2>/dev/null; do sleep 5; done
+  (cd "$bench" && find . -name 'seed*.json' -newer /tmp/plan.txt -not -path './_*' | tar czf "$OUT/results.tgz" -T -)
+  cp /tmp/sweep.log "$OUT/sweep.log"
+  tar tzf "$OUT/results.tgz" | wc -l
+  tail -5 /tmp/sweep.log
+  ;;
+*)
+  echo "usage: device_sweep.sh start ARGS... | collect SECONDS" >&2
+  exit 2
+  ;;
+esac

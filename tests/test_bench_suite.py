@@ -1,0 +1,241 @@
+"""`hpgs bench` at suite scale: suites, repeats and reference seeds, runs per GPU, provenance checked on
+resume, and the paired report (which selector to use) built from the per-run JSON."""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from pathlib import Path
+from types import SimpleNamespace
+
+import pytest
+
+from conftest import REPO, require_shared
+from hpgs_ns.bench import provenance
+from hpgs_ns.bench.executors import ExecutorConfig, LocalExecutor, SlurmExecutor, ray_gpus_per_run
+from hpgs_ns.bench.report import (
+    comparison_plan, noise_table, paired_report, replace_section, throughput_table, write_report,
+)
+from hpgs_ns.bench.runs import Bench, run_settings
+from hpgs_ns.bench.suites import Scene, SuiteError, load_suite, scene_from_folder
+
+# --- suites ------------------------------------------------------------------------------------------------
+
+
+def test_the_shipped_suite_names_the_six_real_scenes_with_their_settings():
+    root = require_shared("data")
+    scenes = load_suite("real6", root)
+    real = [s for s in scenes if not s.smoke]
+    assert [s.name for s in real] == ["bonsai", "fox", "mold-gold-cape", "campus-building", "stitch", "juicebox"]
+    assert all(s.path.is_dir() for s in real)
+    fox = next(s for s in scenes if s.name == "fox")
+    assert fox.dataparser == "nerfstudio-data"
+    assert fox.option_dict() == {"downscale-factor": "2", "eval-mode": "interval", "eval-interval": "8"}
+    assert {s.option_dict()["downscale-factor"] for s in real} == {"2"}
+    assert [s.name for s in scenes if s.smoke] == ["synthetic-occluded"]
+
+
+def test_suite_errors_are_one_line(tmp_path):
+    with pytest.raises(SuiteError, match="unknown suite 'nope'; choose one of real6"):
+        load_suite("nope")
+    with pytest.raises(SuiteError, match=r"scene 'bonsai': .* does not exist; pass --data-root DIR"):
+        load_suite("real6", tmp_path)
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[[scene]]\nname = 'a'\npath = 'synthetic:ring'\n[[scene]]\nname = 'a'\npath = 'synthetic:ring'\n")
+    with pytest.raises(SuiteError, match="two scenes are called 'a'"):
+        load_suite(str(bad))
+    bad.write_text("[[scene]\n")
+    with pytest.raises(SuiteError, match="not valid TOML"):
+        load_suite(str(bad))
+
+
+def test_jobs_run_seed_by_seed_with_repeats_and_one_reference_seed(tmp_path):
+    scenes = [Scene("a", tmp_path), Scene("b", tmp_path)]
+    bench = Bench(out=tmp_path, selectors=["random", "fisher"], seeds=[0, 1], reference_seeds=[0], repeats=2,
+                  protocols=["fisherrf"])
+    jobs = bench.jobs(scenes)
+    names = [(j.seed, j.scene.name, j.name, j.repeat) for j in jobs]
+    assert names[:6] == [(0, "a", "random", 0), (0, "a", "random", 1), (0, "a", "fisher", 0), (0, "a", "fisher", 1),
+                         (0, "a", "initial", 0), (0, "a", "all", 0)]
+    assert len(jobs) == 2 * (2 * 2 * 2 + 2)  # 2 scenes x (2 seeds x 2 selectors x 2 repeats + references once)
+    assert not [j for j in jobs if j.name in ("initial", "all") and j.seed != 0]
+    assert jobs[1].result_path(tmp_path) == tmp_path / "a" / "fisherrf" / "random" / "seed0-repeat1.json"
+
+
+# --- runs per GPU ------------------------------------------------------------------------------------------
+
+
+def test_runs_per_gpu_packs_each_gpu(monkeypatch):
+    monkeypatch.setattr("hpgs_ns.bench.executors.visible_gpus", lambda: ["3", "5"])
+    lock, busy, peak = threading.Lock(), {}, {}
+
+    def fake_run(item, env):
+        gpu = env["CUDA_VISIBLE_DEVICES"]
+        with lock:
+            busy[gpu] = busy.get(gpu, 0) + 1
+            peak[gpu] = max(peak.get(gpu, 0), busy[gpu])
+        time.sleep(0.1)
+        with lock:
+            busy[gpu] -= 1
+        return item
+
+    done = list(LocalExecutor(ExecutorConfig(runs_per_gpu=3)).map(fake_run, range(12)))
+    assert sorted(d.value for d in done) == list(range(12))
+    assert peak == {"3": 3, "5": 3}  # never more than 3 on one GPU, and each GPU full
+    assert ray_gpus_per_run(ExecutorConfig(runs_per_gpu=4)) == 0.25
+    assert ray_gpus_per_run(ExecutorConfig(runs_per_gpu=4, ray_gpus_per_run=0)) == 0
+
+
+def test_slurm_jobs_carry_runs_per_gpu_runs_each(tmp_path):
+    submitted = []
+
+    class FakeJob:
+        def __init__(self, fn, args):
+            self.job_id, self.value = len(submitted), fn(*args)
+
+        def result(self):
+            return self.value
+
+    class FakeExecutor:
+        def __init__(self, folder, cluster):
+            pass
+
+        def update_parameters(self, **params):
+            self.params = params
+
+        def map_array(self, fn, *arg_lists):
+            jobs = [FakeJob(fn, args) for args in zip(*arg_lists)]
+            submitted.extend(jobs)
+            return jobs
+
+    executor = SlurmExecutor.__new__(SlurmExecutor)
+    executor.config, executor.folder = ExecutorConfig(executor="slurm", runs_per_gpu=2, slurm_cpus_per_run=8), tmp_path
+    executor.submitit = SimpleNamespace(AutoExecutor=FakeExecutor, helpers=SimpleNamespace(as_completed=lambda jobs, poll_frequency: jobs))
+    done = list(executor.map(lambda item, env: (item, env["OMP_NUM_THREADS"]), list(range(5))))
+    assert len(submitted) == 3  # 2 + 2 + 1
+    assert sorted((d.index, d.value) for d in done) == [(i, (i, "4")) for i in range(5)]  # 8 CPUs shared by 2
+
+
+# --- provenance --------------------------------------------------------------------------------------------
+
+
+def test_every_module_is_sorted_into_code_or_not_code():
+    package = REPO / "hpgs_ns"
+    for path in package.rglob("*.py"):
+        rel = path.relative_to(package).as_posix()
+        listed = rel in provenance.CODE_FILES or any(
+            rel == n or (n.endswith("/") and rel.startswith(n)) for n in provenance.NOT_CODE_FILES)
+        assert listed, f"{rel}: add it to provenance.CODE_FILES (it can change a run's numbers) or NOT_CODE_FILES"
+
+
+def test_the_code_hash_follows_a_selectors_own_files_only(monkeypatch, tmp_path):
+    import shutil
+
+    copy = tmp_path / "hpgs_ns"
+    shutil.copytree(REPO / "hpgs_ns", copy, ignore=shutil.ignore_patterns("__pycache__", "assets"))
+    monkeypatch.setattr(provenance, "PACKAGE", copy)
+    before = {s: provenance.code_hash(s) for s in ("random", "fisher", "hpgs", None)}
+    assert len(set(before.values())) == 4
+    (copy / "selectors" / "fisher.py").write_text((copy / "selectors" / "fisher.py").read_text() + "\n# changed\n")
+    (copy / "bench" / "report.py").write_text("# reporting cannot change a run\n")
+    after = {s: provenance.code_hash(s) for s in ("random", "fisher", "hpgs", None)}
+    assert [s for s in before if before[s] != after[s]] == ["fisher"]
+    (copy / "model.py").write_text((copy / "model.py").read_text() + "\n# changed\n")
+    assert all(provenance.code_hash(s) != after[s] for s in after)
+
+
+def test_resuming_with_another_preference_model_or_option_is_refused(tmp_path):
+    scene = tmp_path / "scene"
+    (scene / "sparse" / "0").mkdir(parents=True)
+    model = tmp_path / "mine.pt"
+    model.write_bytes(b"weights 1")
+    bench = Bench(scenes=[scene], out=tmp_path / "out", selectors=["hpgs"], seeds=[0], references=False,
+                  extra_args=f"--pipeline.datamanager.hpgs.model {model}")
+    [job] = bench.jobs()
+    settings = run_settings(bench, job)
+    assert settings["selector_options"]["model"] == str(model) and settings["preference_model"] == provenance.file_hash(model)
+    assert settings["code"] == provenance.code_hash("hpgs")
+    path = job.result_path(bench.out)
+    path.parent.mkdir(parents=True)
+    path.write_text(json.dumps({"settings": settings}))
+    bench.run_all()  # same settings: nothing to do
+    model.write_bytes(b"weights 2")
+    with pytest.raises(SystemExit, match=r"seed0.json was made with other settings \(preference_model\); pass another --out"):
+        bench.run_all()
+    model.write_bytes(b"weights 1")
+    bench.extra_args += " --pipeline.datamanager.hpgs.batch-size 4"
+    with pytest.raises(SystemExit, match=r"other settings \(extra_args, selector_options\)"):
+        bench.run_all()
+
+
+# --- the paired report -------------------------------------------------------------------------------------
+
+
+def rows(gains: dict, scenes=("s1", "s2", "s3", "s4", "s5", "s6"), seeds=(0, 1, 2), protocol="fisherrf") -> list:
+    """Runs of `random` (PSNR 20 + a per-(scene, seed) offset) and of each selector at random + its gain."""
+    out = []
+    for i, scene in enumerate(scenes):
+        for seed in seeds:
+            base = 20.0 + 0.37 * i - 0.5 * seed
+            for sel, gain in {"random": 0.0, **gains}.items():
+                g = gain(scene) if callable(gain) else gain
+                out.append({"scene": scene, "protocol": protocol, "selector": sel, "seed": seed, "num_test_views": 9,
+                            "num_train_views": 60, "num_views_final": 20,
+                            "test": {"psnr": base + g, "ssim": 0.6 + g / 100, "lpips": 0.3 - g / 100}})
+    return out
+
+
+def test_primary_comparisons_are_fixed_before_the_gains():
+    data = rows({"farthest": 0.2, "fisher": 0.4, "hpgs": 0.1})
+    primary, secondary = comparison_plan(data, "fisherrf")
+    assert primary == [("farthest", "random"), ("fisher", "random"), ("hpgs", "random"), ("hpgs", "fisher")]
+    assert secondary == [("farthest", "fisher"), ("farthest", "hpgs")]
+
+
+def test_the_report_ranks_only_where_the_interval_and_the_test_allow():
+    shift = lambda scene: 1.0 if scene == "s1" else 0.0  # noqa: E731 - one scene only
+    text = paired_report(rows({"farthest": 0.7, "fisher": shift, "hpgs": 0.0}))
+    assert "`farthest` beats `random` (`farthest` - `random` +0.70 dB, 95% CI [+0.70, +0.70], 6 scenes, p = 0.0312, primary)." in text
+    assert "`fisher` and `random` are indistinguishable here" in text
+    assert "`hpgs` and `random` are indistinguishable here (`hpgs` - `random` +0.00 dB" in text
+    assert "| s1 | 60 | 9 | 0, 1, 2 |" in text  # each scene's training and test views
+
+
+def test_smoke_scenes_repeats_and_stress_copies_stay_out_of_the_comparison():
+    data = rows({"farthest": 0.7})
+    data += [{**r, "scene": "synthetic-occluded", "smoke": True, "test": {**r["test"], "psnr": r["test"]["psnr"] - 9 * (r["selector"] == "farthest")}}
+             for r in rows({"farthest": 0.0}, scenes=("x",))]
+    data += [{**r, "repeat": 1, "test": {**r["test"], "psnr": 0.0}} for r in rows({"farthest": 0.7})]
+    assert "+0.70 dB, 95% CI [+0.70, +0.70], 6 scenes" in paired_report(data)
+
+
+def test_noise_and_throughput_tables():
+    data = [{"scene": "a", "protocol": "p", "selector": "random", "seed": s, "repeat": r, "test": {"psnr": 20 + s + 0.1 * r}}
+            for s in (0, 1, 2) for r in (0, 1)]
+    assert "| a | p | random | 2 x 3 | 0.07 | 1.00 |" in noise_table(data)
+    runs = [{"device": "NVIDIA H100 80GB HBM3", "runs_per_gpu": 4, "sweep_id": "x", "started_at": 100.0 + k,
+             "wall_seconds": 396.0} for k in range(4)]
+    assert "| H100 | 4 | 4 | 399 | 36.1 | 396 |" in throughput_table(runs)
+
+
+def test_report_only_writes_the_readme_section(tmp_path):
+    out = tmp_path / "suite"
+    for r in rows({"farthest": 0.7, "fisher": 0.1}, seeds=(0, 1)):
+        path = out / r["scene"] / r["protocol"] / r["selector"] / f"seed{r['seed']}.json"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps({**r, "wall_seconds": 1.0, "selection_seconds": 0.0, "psnr_per_round": [],
+                                    "chosen_views": [], "initial_views": [], "command": "", "device": "cpu x2"}))
+    readme = tmp_path / "README.md"
+    readme.write_text(f"# x\n\n<!-- bench:{out.as_posix()}:begin -->\nold\n<!-- bench:{out.as_posix()}:end -->\ntail\n")
+    written = write_report(out, readme=readme)
+    text = readme.read_text()
+    assert "old" not in text and text.endswith("tail\n") and "`farthest` beats `random`" in text
+    assert (out / "paired.md").read_text() in text and (out / "fisherrf-paired-gains.png") in written
+    with pytest.raises(SystemExit, match="has no <!-- bench:elsewhere:begin -->"):
+        replace_section(readme, "bench:elsewhere", "x")
+
+
+def test_a_folder_scene_is_named_after_its_folder(tiny_scene):
+    scene = scene_from_folder(tiny_scene)
+    assert (scene.name, scene.dataparser, scene.options) == (tiny_scene.name, "mipnerf360", ())
