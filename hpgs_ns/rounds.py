@@ -16,7 +16,7 @@ from __future__ import annotations
 import math
 import time
 from pathlib import Path
-from typing import Any, Dict, List, Optional, Tuple
+from typing import Any, Callable, Dict, List, Optional, Tuple
 
 import numpy as np
 import torch
@@ -43,6 +43,8 @@ class SelectionRounds:
         self.config = datamanager.config
         self.selector: Selector = selector if selector is not None else self.config.selector_config().setup()
         self.run_dir: Optional[Path] = None
+        # Called with each round's record once it is logged (the viewer redraws the roles).
+        self.listeners: List[Callable[[Dict[str, Any]], None]] = []
 
     # ---- when ------------------------------------------------------------------------------------------------
 
@@ -177,6 +179,8 @@ class SelectionRounds:
         self._log_chosen_render(selection.indices[0], step)
         self._log_scores_plot(selection, step)
         self.write_log()
+        for listener in self.listeners:
+            listener(record)
         return selection
 
     def reset_model(self, step: int, optimizers) -> None:
