@@ -4,6 +4,9 @@ The datamanager and the model are set up exactly as VanillaPipeline does; this c
 training callbacks. They run before the model's own callbacks at each step, so a round sees the model as the
 previous iteration left it. Rounds exist only when training (`test_mode="val"`): `ns-eval` and `ns-viewer` open a
 run without setting up its selector.
+
+`selection_view` shows the selection in nerfstudio's viewer (`hpgs_ns.viewer`); nerfstudio installs it when the
+viewer is on, and each round redraws it.
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineC
 
 from hpgs_ns.rounds import SelectionRounds
 from hpgs_ns.snapshots import Snapshots
+from hpgs_ns.viewer import SelectionView
 
 
 @dataclass
@@ -35,9 +39,15 @@ class HpgsPipeline(VanillaPipeline):
         training = test_mode == "val"
         self.rounds: Optional[SelectionRounds] = SelectionRounds(self.datamanager, self.model) if training else None
         self.snapshots: Optional[Snapshots] = Snapshots(self.datamanager, self.model) if training else None
+        # A viewer element, not an nn.Module: checkpoints' keys stay the same.
+        self.selection_view = SelectionView(self.datamanager)
+        if self.rounds is not None:
+            self.rounds.listeners.append(self.selection_view.on_round)
 
     def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:
         attrs = training_callback_attributes
+        # The trainer loads a checkpoint (--load-dir) after the viewer installed the view: show its rounds.
+        self.selection_view.refresh()
         callbacks = self.datamanager.get_training_callbacks(attrs)
         if self.rounds is not None and self.snapshots is not None:
             callbacks += self.rounds.callbacks(attrs) + self.snapshots.callbacks(attrs)
