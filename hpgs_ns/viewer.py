@@ -27,7 +27,6 @@ from dataclasses import dataclass
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
-import torch
 import viser
 import viser.transforms as vtf
 from nerfstudio.utils.rich_utils import CONSOLE
