@@ -29,7 +29,7 @@ run)
     [ -z "$args" ] && continue
     echo "=== start $(date +%s): $args"
     # shellcheck disable=SC2086  # ARGS is a list of words
-    python3 -m hpgs_ns.cli bench --data-root .devdata --out "$bench" $args 2>&1 | grep -E 'PSNR|rror|failed|runs to do|Traceback'
+    python3 -m hpgs_ns.cli bench --data-root .devdata --out "$bench" $args 2>&1 | grep --line-buffered -E 'PSNR|rror|failed|runs to do|Traceback|hpgs bench:'
     echo "=== end $(date +%s)"
   done < "$2"
   echo "=== plan finished $(date +%s)"

@@ -96,7 +96,7 @@ def test_local_executor_pins_one_run_per_gpu(monkeypatch):
             busy.discard(gpu)
         return item * 10
 
-    done = list(LocalExecutor(ExecutorConfig()).map(fake_run, range(6)))
+    done = list(LocalExecutor(ExecutorConfig(runs_per_gpu=1)).map(fake_run, range(6)))
     assert sorted((d.index, d.value) for d in done) == [(i, 10 * i) for i in range(6)]
     assert sorted(set(seen)) == ["3", "5"] and len(seen) == 6
 
@@ -126,7 +126,7 @@ def test_ray_sweep_matches_local_and_resumes_after_the_driver_is_killed(local_re
 
     rerun = subprocess.run(cli(tiny_scene, out, *ray_args), env=env(), capture_output=True, text=True, timeout=600)
     assert rerun.returncode == 0, rerun.stderr[-3000:]
-    assert f"{4 - len(finished)} runs to do (ray, 1 per GPU)" in rerun.stderr
+    assert f"{4 - len(finished)} runs to do (ray, 1 per device)" in rerun.stderr
     assert {p: p.stat().st_mtime_ns for p in finished} == finished  # finished runs were not run again
     assert_same_numbers(out, local_results)
     assert (out / "table.md").read_text() == markdown_table(load_results(out))

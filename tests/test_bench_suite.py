@@ -12,7 +12,7 @@ import pytest
 
 from conftest import REPO, require_shared
 from hpgs_ns.bench import provenance
-from hpgs_ns.bench.executors import ExecutorConfig, LocalExecutor, SlurmExecutor, ray_gpus_per_run
+from hpgs_ns.bench.executors import ExecutorConfig, LocalExecutor, SlurmExecutor, ray_gpus_per_run, runs_per_device
 from hpgs_ns.bench.report import (
     comparison_plan, noise_table, paired_report, replace_section, throughput_table, write_report,
 )
@@ -82,8 +82,18 @@ def test_runs_per_gpu_packs_each_gpu(monkeypatch):
     done = list(LocalExecutor(ExecutorConfig(runs_per_gpu=3)).map(fake_run, range(12)))
     assert sorted(d.value for d in done) == list(range(12))
     assert peak == {"3": 3, "5": 3}  # never more than 3 on one GPU, and each GPU full
+    assert runs_per_device(ExecutorConfig(runs_per_gpu=3)) == 3  # recorded with each run: its times are not its own
     assert ray_gpus_per_run(ExecutorConfig(runs_per_gpu=4)) == 0.25
     assert ray_gpus_per_run(ExecutorConfig(runs_per_gpu=4, ray_gpus_per_run=0)) == 0
+    assert runs_per_device(ExecutorConfig(executor="ray", runs_per_gpu=4)) == 4
+
+
+def test_without_a_gpu_runs_go_one_at_a_time(monkeypatch):
+    monkeypatch.setattr("hpgs_ns.bench.executors.visible_gpus", lambda: [])
+    calls = []
+    done = list(LocalExecutor(ExecutorConfig()).map(lambda item, env: calls.append(env) or item, range(3)))
+    assert [d.value for d in done] == [0, 1, 2] and calls == [{}, {}, {}]  # in-process, in order
+    assert runs_per_device(ExecutorConfig()) == 1
 
 
 def test_slurm_jobs_carry_runs_per_gpu_runs_each(tmp_path):

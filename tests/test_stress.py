@@ -202,7 +202,7 @@ def test_bench_stress_runs_each_scene_clean_and_perturbed(scene, tmp_path, monke
     """`hpgs bench --stress` wiring, with training replaced by a stub that records which scene it was given."""
     from hpgs_ns.bench import runs as bench_module
 
-    def fake_run(bench, job, env=None, sweep_id=None):
+    def fake_run(bench, job, env=None, sweep=None):
         parse(job.scene.path)  # the real dataparser must accept the perturbed copy
         psnr = 20.0 - 1.5 * ("+" in job.scene.name)
         return {"scene": job.scene.name, "protocol": job.protocol.name, "selector": job.name, "seed": job.seed,

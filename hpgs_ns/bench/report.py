@@ -377,14 +377,14 @@ def paired_report(rows: List[dict]) -> str:
         primary, secondary = comparison_plan(group, protocol)
         if not primary:
             continue
-        out += [f"### {protocol} protocol", "", scenes_table(group), ""]
+        out += [f"#### {protocol} protocol", "", scenes_table(group), ""]
         for sel, _ in [p for p in primary if p[1] == BASELINE]:
             gains = stats.paired_gains(group, sel, BASELINE, protocol, "psnr")
             out += [f"PSNR gain of `{sel}` over `random`, per scene (seeds paired):", "",
                     stats.scene_table(stats.scene_summaries(gains), "psnr"), ""]
         sentences = []
         for metric in METRICS:
-            comparisons = stats.compare(group, protocol, secondary, metric=metric, primary=primary)
+            comparisons = stats.compare(group, protocol, primary + secondary, metric=metric, primary=primary)
             out += [f"**{metric.upper()}**", "", stats.comparison_table(comparisons), ""]
             if metric == "psnr":
                 sentences = [verdict_sentence(c) for c in comparisons if c.n_scenes]

@@ -31,7 +31,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 from hpgs_ns.atomic_write import write_json_atomic
 from hpgs_ns.bench import provenance
-from hpgs_ns.bench.executors import ExecutorConfig, make_executor
+from hpgs_ns.bench.executors import ExecutorConfig, make_executor, runs_per_device
 from hpgs_ns.bench.protocols import DEFAULT_SELECTORS, PROTOCOLS, REFERENCES, Protocol, scaled
 from hpgs_ns.bench.report import write_report
 from hpgs_ns.bench.stress import PerturbationName, StressConfig, StressError, perturbed_copy
@@ -276,9 +276,11 @@ def run_settings(bench: Bench, job: Job) -> dict:
     }
 
 
-def run_one(bench: Bench, job: Job, env: Optional[Dict[str, str]] = None, sweep_id: Optional[str] = None) -> dict:
-    """Train and evaluate one run in a subprocess with environment `env` (default: this process's). `sweep_id`
-    names the sweep it was part of (the report's throughput groups runs by it)."""
+def run_one(bench: Bench, job: Job, env: Optional[Dict[str, str]] = None, sweep: Optional[Dict[str, Any]] = None) -> dict:
+    """Train and evaluate one run in a subprocess with environment `env` (default: this process's). `sweep`:
+    the sweep's `id` (the report's throughput groups runs by it) and `runs_per_gpu`, how many runs shared the
+    device at a time (1: its times are its own)."""
+    sweep = sweep or {}
     run_root = bench.out / "_runs"
     cmd = train_args(bench, job, run_root)
     run_dir = job.run_folder(run_root)
@@ -317,8 +319,8 @@ def run_one(bench: Bench, job: Job, env: Optional[Dict[str, str]] = None, sweep_
         ],
         "wall_seconds": wall,
         "started_at": started,
-        "sweep_id": sweep_id,
-        "runs_per_gpu": bench.cluster.runs_per_gpu,
+        "sweep_id": sweep.get("id"),
+        "runs_per_gpu": sweep.get("runs_per_gpu", 1),
         "selection_seconds": float(sum(r["seconds"] for r in rounds)),
         "selection_seconds_per_round": [r["seconds"] for r in rounds],
         "selection_work": summed_work(rounds),
@@ -387,11 +389,11 @@ def library_versions() -> Dict[str, Optional[str]]:
     return out
 
 
-def sweep_worker(item: Tuple[Bench, Job, str], env: Dict[str, str]) -> dict:
+def sweep_worker(item: Tuple[Bench, Job, Dict[str, Any]], env: Dict[str, str]) -> dict:
     """Worker side: train and evaluate one run, write its JSON, return `{"result": ...}` or `{"error", "log"}`."""
-    bench, job, sweep_id = item
+    bench, job, sweep = item
     try:
-        result = run_one(bench, job, env={**os.environ, **env}, sweep_id=sweep_id)
+        result = run_one(bench, job, env={**os.environ, **env}, sweep=sweep)
     except (Exception, SystemExit) as exc:  # run_one exits on a failed training; keep the worker alive
         return {"error": str(exc), "log": str(job.log_path(bench.out))}
     write_json_atomic(job.result_path(bench.out), result)
@@ -409,13 +411,13 @@ def run_sweep(bench: Bench, jobs: Sequence[Job], config: ExecutorConfig) -> None
     bench = replace(bench, out=bench.out.resolve())
     jobs = [job._replace(scene=dataclasses.replace(job.scene, path=job.scene.path.resolve())) for job in jobs]
     executor = make_executor(config, bench.out)
-    sweep_id = f"{socket.gethostname()}-{int(time.time())}"
-    CONSOLE.print(f"hpgs bench: {len(jobs)} runs to do ({config.executor}, {config.runs_per_gpu} per GPU)")
+    sweep = {"id": f"{socket.gethostname()}-{int(time.time())}", "runs_per_gpu": runs_per_device(config)}
+    CONSOLE.print(f"hpgs bench: {len(jobs)} runs to do ({config.executor}, {sweep['runs_per_gpu']} per device)")
     failures: List[str] = []
     columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
     with Progress(*columns, console=CONSOLE) as progress:
         bar = progress.add_task("runs", total=len(jobs))
-        for done in executor.map(sweep_worker, [(bench, job, sweep_id) for job in jobs]):
+        for done in executor.map(sweep_worker, [(bench, job, sweep) for job in jobs]):
             job = jobs[done.index]
             value = done.value or {"error": done.error, "log": None}
             if "result" in value:
