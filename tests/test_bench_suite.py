@@ -173,6 +173,12 @@ def test_resuming_with_another_preference_model_or_option_is_refused(tmp_path):
     with pytest.raises(SystemExit, match=r"seed0.json was made with other settings \(preference_model\); pass another --out"):
         bench.run_all()
     model.write_bytes(b"weights 1")
+    path.write_text(json.dumps({"settings": {**settings, "code": "another"}}))
+    with pytest.raises(SystemExit, match=r"other settings \(code\); .* or --accept-code-change if"):
+        bench.run_all()
+    bench.accept_code_change = True
+    bench.run_all()  # kept: only the code differs, and that was accepted
+    path.write_text(json.dumps({"settings": settings}))
     bench.extra_args += " --pipeline.datamanager.hpgs.batch-size 4"
     with pytest.raises(SystemExit, match=r"other settings \(extra_args, selector_options\)"):
         bench.run_all()

@@ -378,6 +378,9 @@ def paired_report(rows: List[dict]) -> str:
         if not primary:
             continue
         out += [f"#### {protocol} protocol", "", scenes_table(group), ""]
+        versions = {(r.get("settings") or {}).get("code") for r in group} - {None}
+        if len(versions) > 1:
+            out += [f"These runs were made by {len(versions)} versions of the code (`--accept-code-change`).", ""]
         for sel, _ in [p for p in primary if p[1] == BASELINE]:
             gains = stats.paired_gains(group, sel, BASELINE, protocol, "psnr")
             out += [f"PSNR gain of `{sel}` over `random`, per scene (seeds paired):", "",

@@ -89,6 +89,9 @@ class Bench:
     extra_args: str = ""
     """Extra `ns-train hpgs` arguments for every run (quoted). A finished run made with other arguments is an
     error on resume, not skipped: pass another `--out`."""
+    accept_code_change: bool = False
+    """Keep finished runs whose only difference is the code (e.g. a sweep built across commits whose changes
+    cannot move the numbers); the report then says how many code versions are behind the comparisons."""
     report_only: bool = False
     """Only rebuild the tables and plots from existing JSON."""
     readme: Optional[Path] = None
@@ -160,11 +163,13 @@ class Bench:
                 continue
             made_with = json.loads(path.read_text()).get("settings")  # absent in results older than this check
             settings = run_settings(self, job)
-            if made_with is not None and made_with != settings:
-                changed = ", ".join(k for k in sorted(set(made_with) | set(settings)) if made_with.get(k) != settings.get(k))
+            changed_keys = [k for k in sorted(set(made_with or {}) | set(settings)) if (made_with or {}).get(k) != settings.get(k)]
+            if made_with is not None and changed_keys and not (self.accept_code_change and changed_keys == ["code"]):
+                changed = ", ".join(changed_keys)
                 raise SystemExit(
                     f"hpgs bench: {path} was made with other settings ({changed}); pass another --out to keep both, "
-                    "or delete it to re-run"
+                    "delete it to re-run" + (", or --accept-code-change if the code change cannot move the numbers"
+                                             if changed_keys == ["code"] else "")
                 )
         if self.max_runs is not None and len(todo) > self.max_runs:
             CONSOLE.print(f"[yellow]--max-runs {self.max_runs}: {len(todo) - self.max_runs} runs left; run again to continue")
