@@ -93,6 +93,15 @@ class ActiveDatamanagerConfig(FullImageDatamanagerConfig):
     views leak no geometry into the starting splat."""
     eval_each_round: bool = False
     """Measure test-view PSNR just before each round (recorded in selected_views.json; used by `hpgs bench`)."""
+    stop_when_gain_below: Optional[float] = None
+    """Stop selecting once the next view's predicted test-PSNR gain (dB) is below this (`hpgs_ns.early_stop`;
+    default: every round runs): views a scene does not need are not added."""
+    gain_model: Optional[Path] = None
+    """The gain calibration for stop-when-gain-below (default: the one shipped, fitted on the benchmark suite)."""
+    log_candidate_scores: bool = False
+    """After each round, log every built-in selector's score of every candidate and each candidate's render error
+    against its withheld photo to candidate_scores.jsonl (analysis only: never read by the run, and its random
+    stream is left as it was)."""
     snapshot_every: int = 0
     """If > 0, every this many steps (and at the last step) render every training-split view to
     `<run dir>/snapshots/step-NNNNNN/` (what `hpgs collect` labels). Test views are never rendered."""

@@ -25,6 +25,8 @@ from nerfstudio.utils import writer
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from hpgs_ns.atomic_write import write_json_atomic
+from hpgs_ns.candidate_log import CandidateLog
+from hpgs_ns.early_stop import GainModel
 from hpgs_ns.errors import UserError
 from hpgs_ns.schedules import restart_schedules
 from hpgs_ns.selectors.base import Selection, SelectionContext, SelectionError, Selector, check_selection
@@ -45,8 +47,22 @@ class SelectionRounds:
         self.run_dir: Optional[Path] = None
         # Called with each round's record once it is logged (the viewer redraws the roles).
         self.listeners: List[Callable[[Dict[str, Any]], None]] = []
+        if getattr(self.config, "log_candidate_scores", False):
+            self.listeners.append(CandidateLog(self).on_round)
+        threshold = getattr(self.config, "stop_when_gain_below", None)
+        self.gain_model = GainModel.load(getattr(self.config, "gain_model", None)) if threshold is not None else None
+        self.stopped: Optional[Dict[str, Any]] = None
+        """Why selection stopped early (step, views, predicted gain), once it has."""
+        self.psnr_without_round: Dict[int, float] = {}
+        """eval-each-round: test PSNR at scheduled steps where no round ran (this process's only)."""
 
     # ---- when ------------------------------------------------------------------------------------------------
+
+    def is_scheduled(self, step: int) -> bool:
+        """Whether `step` is on the round schedule (select-at, or a multiple of select-every), rounds left or not."""
+        if self.config.select_at:
+            return step in self.config.select_at
+        return step > 0 and self.config.select_every > 0 and step % self.config.select_every == 0
 
     def is_round_step(self, step: int) -> bool:
         """True when a selection round is due at `step`."""
@@ -58,7 +74,27 @@ class SelectionRounds:
             return False
         history = self.datamanager.history
         done = {h["step"] for h in history}
-        return step not in done and len(history) < self.config.max_rounds and bool(self.datamanager.candidates)
+        due = step not in done and len(history) < self.config.max_rounds and bool(self.datamanager.candidates)
+        return due and self.stopped is None and not self._stop_before(step)
+
+    def predicted_gain(self) -> Optional[float]:
+        """The test-PSNR gain (dB) the gain model predicts for the next round, if stop-when-gain-below is on."""
+        if self.gain_model is None:
+            return None
+        return self.gain_model.predict(self.config.selector, len(self.datamanager.active))
+
+    def _stop_before(self, step: int) -> bool:
+        """stop-when-gain-below: True (and the stop recorded) when the next round is predicted to gain too little."""
+        gain = self.predicted_gain()
+        if gain is None or gain >= self.config.stop_when_gain_below:
+            return False
+        views = len(self.datamanager.active)
+        self.stopped = {"step": int(step), "views": views, "predicted_gain_db": gain,
+                        "threshold_db": float(self.config.stop_when_gain_below)}
+        CONSOLE.print(f"[bold]selection stops at step {step}[/bold]: the next view is predicted to gain {gain:.2f} dB "
+                      f"(< stop-when-gain-below {self.config.stop_when_gain_below:g}); {views} views")
+        self.write_log()
+        return True
 
     def plan(self, first_step: int, end_step: int) -> Tuple[int, str]:
         """How many rounds a run of steps [first_step, end_step) will run, and why not all `max_rounds` when
@@ -99,6 +135,10 @@ class SelectionRounds:
         if trainer is not None:
             start = int(getattr(trainer, "_start_step", 0))
             count, why = self.plan(start, start + int(trainer.config.max_num_iterations))
+            gain = self.predicted_gain()
+            if gain is not None:
+                CONSOLE.print(f"stop-when-gain-below {self.config.stop_when_gain_below:g} dB: the first round is predicted "
+                              f"to gain {gain:.2f} dB; selection stops at the first round predicted below it")
             if why:
                 what = "no selection rounds will run" if count == 0 else f"only {count} of {self.config.max_rounds} selection rounds will run"
                 CONSOLE.print(f"[yellow]{what}: {why}", soft_wrap=True)
@@ -112,6 +152,10 @@ class SelectionRounds:
                 self.run_round(step)
                 if self.config.reset_after_add:
                     self.reset_model(step, attrs.optimizers)
+            elif self.config.eval_each_round and self.is_scheduled(step):
+                # No round here (none left, or a reference run): the test PSNR at the step still says what the
+                # views so far are worth against a run that added others (early_stop's calibration).
+                self.psnr_without_round[int(step)] = self.test_psnr()
 
         callbacks = [TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], before_iteration)]
         if trainer is not None:
@@ -231,8 +275,16 @@ class SelectionRounds:
             "withheld": [names[i] for i in dm.candidates],
             "test": dm.test_view_names,
             "peak_gpu_memory_mb": torch.cuda.max_memory_allocated() / 2**20 if torch.cuda.is_available() else None,
+            "stopped": self.stopped,
+            "test_psnr_at_round_steps": self.test_psnr_at_round_steps(),
         }
         return write_json_atomic(self.run_dir / "selected_views.json", payload)
+
+    def test_psnr_at_round_steps(self) -> Dict[str, float]:
+        """eval-each-round: the test PSNR at every scheduled step, before its round if one ran ({str(step): dB})."""
+        values = {int(h["step"]): h["test_psnr_before"] for h in self.datamanager.history if h.get("test_psnr_before") is not None}
+        values.update(self.psnr_without_round)
+        return {str(k): float(values[k]) for k in sorted(values)}
 
     def _log_chosen_render(self, index: int, step: int) -> None:
         try:

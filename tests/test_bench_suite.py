@@ -254,3 +254,24 @@ def test_report_only_writes_the_readme_section(tmp_path):
 def test_a_folder_scene_is_named_after_its_folder(tiny_scene):
     scene = scene_from_folder(tiny_scene)
     assert (scene.name, scene.dataparser, scene.options) == (tiny_scene.name, "mipnerf360", ())
+
+
+def test_per_scene_preference_models_are_used_and_checked(tmp_path):
+    from hpgs_ns.bench.runs import train_args
+
+    scene = tmp_path / "garden"
+    (scene / "sparse" / "0").mkdir(parents=True)
+    models = tmp_path / "loso"
+    models.mkdir()
+    (models / "garden.pt").write_bytes(b"trained without garden")
+    bench = Bench(scenes=[scene], out=tmp_path / "out", selectors=["hpgs", "random"], seeds=[0], references=False,
+                  preference_models=models)
+    hpgs_job, random_job = bench.jobs()
+    args = train_args(bench, hpgs_job, tmp_path)
+    assert args[args.index("--pipeline.datamanager.hpgs.model") + 1] == str((models / "garden.pt").resolve())
+    assert "--pipeline.datamanager.hpgs.model" not in train_args(bench, random_job, tmp_path)
+    settings = run_settings(bench, hpgs_job)
+    assert settings["preference_model"] == provenance.file_hash(models / "garden.pt")
+    (models / "garden.pt").unlink()
+    with pytest.raises(SystemExit, match="no preference model .*garden.pt for scene 'garden'; train one without that scene"):
+        train_args(bench, hpgs_job, tmp_path)

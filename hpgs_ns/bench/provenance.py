@@ -23,7 +23,7 @@ PACKAGE = Path(__file__).resolve().parent.parent
 
 # Files (relative to hpgs_ns/) whose change can change any run's numbers.
 CODE_FILES = (
-    "cpu_raster.py", "datamanager.py", "dataparser.py", "metrics.py", "method_config.py", "model.py",
+    "cpu_raster.py", "datamanager.py", "dataparser.py", "early_stop.py", "metrics.py", "method_config.py", "model.py",
     "offline_weights.py", "pipeline.py", "rounds.py", "schedules.py", "snapshots.py", "trainer.py",
     "render/pair_render.py", "render/viewmats.py", "scenes/colmap_model.py", "scenes/synthetic.py",
     "selectors/base.py", "selectors/registry.py",
@@ -36,7 +36,7 @@ SELECTOR_FILES = {
 }
 # Everything else: cannot change a run's numbers.
 NOT_CODE_FILES = (
-    "__init__.py", "atomic_write.py", "cli.py", "demo.py", "errors.py", "ns_train.py", "viewer.py",
+    "__init__.py", "atomic_write.py", "candidate_log.py", "cli.py", "demo.py", "errors.py", "ns_train.py", "viewer.py",
     "bench/", "preference/", "render/__init__.py", "scenes/__init__.py", "selectors/__init__.py", "selectors/",
 )
 

@@ -37,9 +37,11 @@ from hpgs_ns.bench.report import write_report
 from hpgs_ns.bench.stress import PerturbationName, StressConfig, StressError, perturbed_copy
 from hpgs_ns.bench.suites import SYNTHETIC, Scene, SuiteError, load_suite, scene_from_folder
 from hpgs_ns.dataparser import SceneDataError
+from hpgs_ns.early_stop import DEFAULT_GAIN_MODEL
 from hpgs_ns.ns_train import ns_train_command
 
 CONSOLE = Console(stderr=True)
+PREFERENCE_SELECTORS = ("hpgs", "condorcet")  # the selectors that score with a preference model
 
 
 @dataclass
@@ -89,6 +91,17 @@ class Bench:
     extra_args: str = ""
     """Extra `ns-train hpgs` arguments for every run (quoted). A finished run made with other arguments is an
     error on resume, not skipped: pass another `--out`."""
+    preference_models: Optional[Path] = None
+    """A folder of per-scene preference models, `<scene>.pt`, each trained without that scene (leave one scene out):
+    `hpgs` and `condorcet` runs of a scene use its model, so no run scores views with a model that saw the scene."""
+    stop_when_gain_below: Optional[float] = None
+    """Stop each run's selection once the next view is predicted to gain less than this many dB (`early_stop`);
+    results go under `<protocol>-stop<X>`."""
+    gain_model: Optional[Path] = None
+    """The gain calibration for --stop-when-gain-below (`benchmarks/early_stop.py --write-model`)."""
+    log_candidate_scores: bool = False
+    """Also log every selector's score of every candidate and each candidate's render error at every round
+    (`<stem>-candidates.jsonl` beside each result; for tuning selectors offline, `benchmarks/candidate_scores.py`)."""
     accept_code_change: bool = False
     """Keep finished runs whose only difference is the code (e.g. a sweep built across commits whose changes
     cannot move the numbers); the report then says how many code versions are behind the comparisons."""
@@ -147,6 +160,8 @@ class Bench:
                         protocol = dataclasses.replace(protocol, name=f"{protocol.name}-reset")
                     if self.strict_init:
                         protocol = dataclasses.replace(protocol, name=f"{protocol.name}-strict")
+                    if self.stop_when_gain_below is not None:
+                        protocol = dataclasses.replace(protocol, name=f"{protocol.name}-stop{self.stop_when_gain_below:g}")
                     names = list(self.selectors) if seed in self.seeds else []
                     names += list(REFERENCES) if self.references and seed in reference_seeds else []
                     for name in names:
@@ -253,6 +268,15 @@ def train_args(bench: Bench, job: Job, run_root: Path) -> List[str]:
         datamanager["reset-after-add"] = True
     if bench.strict_init:
         datamanager["strict-init"] = True
+    if bench.stop_when_gain_below is not None and name not in REFERENCES:
+        datamanager["stop-when-gain-below"] = bench.stop_when_gain_below
+        if bench.gain_model is not None:
+            datamanager["gain-model"] = Path(bench.gain_model).resolve()
+    if bench.log_candidate_scores and name not in REFERENCES:
+        datamanager["log-candidate-scores"] = True
+    model = scene_preference_model(bench, job)
+    if model is not None:
+        datamanager[f"{name}.model"] = model
     return ns_train_command(
         job.scene.path, run_root, job.scene.name, job.run_folder(run_root).name, protocol.steps,
         # ns-eval's JSON, written by the training process (hpgs_ns/trainer.py): no second start-up per run
@@ -267,7 +291,9 @@ def run_settings(bench: Bench, job: Job) -> dict:
     schedule, the dataparser and its options, the code that trains and selects, the selector's options and its
     preference model."""
     selector = None if job.name in REFERENCES else job.name
-    options = provenance.selector_options(selector, shlex.split(bench.extra_args)) if selector else None
+    model = scene_preference_model(bench, job)
+    own = [f"--pipeline.datamanager.{selector}.model", str(model)] if model is not None else []
+    options = provenance.selector_options(selector, shlex.split(bench.extra_args) + own) if selector else None
     return {
         "steps": job.protocol.steps,
         "initial_views": bench.initial_views or job.protocol.initial_views,
@@ -278,7 +304,25 @@ def run_settings(bench: Bench, job: Job) -> dict:
         "code": provenance.code_hash(selector),
         "selector_options": options,
         "preference_model": provenance.preference_model_hash(selector, options) if selector else None,
+        "stop_when_gain_below": bench.stop_when_gain_below,
+        "gain_model": gain_model_hash(bench) if bench.stop_when_gain_below is not None else None,
     }
+
+
+def scene_preference_model(bench: Bench, job: Job) -> Optional[Path]:
+    """The scene's own preference model under --preference-models, for selectors that run one (else None)."""
+    if bench.preference_models is None or job.name not in PREFERENCE_SELECTORS:
+        return None
+    path = (Path(bench.preference_models) / f"{job.scene.name}.pt").resolve()
+    if not path.is_file():
+        raise SystemExit(f"hpgs bench: no preference model {path} for scene {job.scene.name!r}; train one without that "
+                         "scene (leave one scene out) or drop --preference-models")
+    return path
+
+
+def gain_model_hash(bench: Bench) -> str:
+    path = Path(bench.gain_model) if bench.gain_model is not None else DEFAULT_GAIN_MODEL
+    return provenance.file_hash(path) if path.is_file() else "missing"
 
 
 def run_one(bench: Bench, job: Job, env: Optional[Dict[str, str]] = None, sweep: Optional[Dict[str, Any]] = None) -> dict:
@@ -303,6 +347,11 @@ def run_one(bench: Bench, job: Job, env: Optional[Dict[str, str]] = None, sweep:
     if os.waitstatus_to_exitcode(status) != 0:
         tail = "\n".join(log_path.read_text().strip().splitlines()[-15:])
         raise SystemExit(f"hpgs bench: training failed ({shlex.join(cmd)}):\n{tail}")
+    log = run_dir / "candidate_scores.jsonl"
+    if log.is_file():
+        keep = job.result_path(bench.out).with_name(f"{job.stem}-candidates.jsonl")
+        keep.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(log, keep)
     metrics = json.loads((run_dir / "eval.json").read_text())
     selected = json.loads((run_dir / "selected_views.json").read_text())
     rounds = selected["rounds"]
@@ -318,6 +367,7 @@ def run_one(bench: Bench, job: Job, env: Optional[Dict[str, str]] = None, sweep:
         "num_test_views": len(selected["test"]),
         "num_train_views": len(selected["active"]) + len(selected["withheld"]),
         "num_views_final": len(selected["active"]),
+        "psnr_at_round_steps": selected.get("test_psnr_at_round_steps", {}),
         "psnr_per_round": [
             {"step": r["step"], "num_views_before": r["num_active"] - len(r["chosen"]), "test_psnr": r["test_psnr_before"]}
             for r in rounds

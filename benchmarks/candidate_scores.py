@@ -1,0 +1,100 @@
+"""How well each selector's scores find the candidates the splat renders worst, from `--log-candidate-scores` logs.
+
+Reads every `*-candidates.jsonl` under a results folder (`hpgs bench --log-candidate-scores`): per round, each
+built-in selector's score of every candidate and the candidate's render error against its withheld photo (the
+oracle). For each selector: the Spearman correlation of its scores with the oracle LPIPS (mean over rounds) and the
+oracle percentile of its top pick (1.0: it picked the worst-rendered candidate). Then a linear combination of the
+selectors' per-round z-scores, fitted to the oracle's z-scores by least squares *leaving one scene out*: the
+numbers reported for it are on the scene it never saw.
+
+    python benchmarks/candidate_scores.py benchmarks/results/suite --out candidate_scores.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+from typing import Dict, List
+
+import numpy as np
+from scipy.stats import spearmanr
+
+
+def load_rounds(folder: Path) -> List[dict]:
+    rounds = []
+    for path in sorted(folder.glob("*/*/*/*-candidates.jsonl")):
+        scene = path.relative_to(folder).parts[0]
+        for line in path.read_text().splitlines():
+            if line.strip():
+                rounds.append({**json.loads(line), "scene": scene})
+    return rounds
+
+
+def zscore(x: np.ndarray) -> np.ndarray:
+    sd = x.std()
+    return (x - x.mean()) / sd if sd > 0 else np.zeros_like(x)
+
+
+def quality(scores: np.ndarray, oracle: np.ndarray) -> Dict[str, float]:
+    """Spearman with the oracle error and the oracle percentile of the top-scored candidate."""
+    rho = spearmanr(scores, oracle).statistic if len(scores) > 2 and scores.std() > 0 else float("nan")
+    top = int(np.argmax(scores))
+    return {"spearman": float(rho), "top_percentile": float((oracle < oracle[top]).mean())}
+
+
+def summarize(rounds: List[dict], selectors: List[str]) -> Dict[str, Dict[str, float]]:
+    out = {}
+    for sel in selectors:
+        q = [quality(np.array(r["scores"][sel]), np.array(r["oracle"]["lpips"])) for r in rounds]
+        out[sel] = {k: float(np.nanmean([x[k] for x in q])) for k in ("spearman", "top_percentile")}
+    return out
+
+
+def leave_one_scene_out(rounds: List[dict], selectors: List[str]) -> Dict[str, object]:
+    """Weights fitted on the other scenes, judged on each held-out scene; mean over scenes."""
+    scenes = sorted({r["scene"] for r in rounds})
+    if len(scenes) < 2:
+        return {}
+
+    def design(rs):
+        x = [np.stack([zscore(np.nan_to_num(np.array(r["scores"][s]))) for s in selectors], 1) for r in rs]
+        y = [zscore(np.array(r["oracle"]["lpips"])) for r in rs]
+        return x, y
+
+    per_scene, weights = {}, {}
+    for held in scenes:
+        xs, ys = design([r for r in rounds if r["scene"] != held])
+        w, *_ = np.linalg.lstsq(np.concatenate(xs), np.concatenate(ys), rcond=None)
+        test = [r for r in rounds if r["scene"] == held]
+        q = [quality(x @ w, np.array(r["oracle"]["lpips"])) for x, r in zip(design(test)[0], test)]
+        per_scene[held] = {k: float(np.nanmean([v[k] for v in q])) for k in ("spearman", "top_percentile")}
+        weights[held] = dict(zip(selectors, map(float, w)))
+    mean = {k: float(np.mean([v[k] for v in per_scene.values()])) for k in ("spearman", "top_percentile")}
+    return {"held_out_mean": mean, "per_scene": per_scene, "weights": weights}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("folder", type=Path)
+    ap.add_argument("--out", type=Path, default=None)
+    args = ap.parse_args()
+    rounds = load_rounds(args.folder)
+    if not rounds:
+        raise SystemExit(f"candidate_scores: no *-candidates.jsonl under {args.folder}; run hpgs bench --log-candidate-scores")
+    selectors = sorted(rounds[0]["scores"])
+    result = {"rounds": len(rounds), "scenes": sorted({r["scene"] for r in rounds}),
+              "per_selector": summarize(rounds, selectors), "combination_loso": leave_one_scene_out(rounds, selectors)}
+    print(f"{len(rounds)} rounds, scenes {', '.join(result['scenes'])}")
+    print("| scores | Spearman with oracle LPIPS | top pick's oracle percentile |\n|---|---|---|")
+    for sel, q in result["per_selector"].items():
+        print(f"| {sel} | {q['spearman']:.3f} | {q['top_percentile']:.3f} |")
+    if result["combination_loso"]:
+        q = result["combination_loso"]["held_out_mean"]
+        print(f"| linear combination (leave one scene out) | {q['spearman']:.3f} | {q['top_percentile']:.3f} |")
+    if args.out:
+        args.out.write_text(json.dumps(result, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,141 @@
+"""Skip what a scene does not need: stop adding views once the next one is predicted to gain less than X dB.
+
+What a view is worth. The test PSNR of a run rises with training as much as with views, so the change from one
+round to the next says little about the view. With `eval-each-round` every run records its test PSNR at every
+round step (`psnr_at_round_steps`), the `initial` reference too, which trains the same steps on the initial views
+alone. The cumulative gain of a run's views at step s is G(s) = PSNR(s) - PSNR_initial(s) (same seed, same steps),
+and round k's view gained G(s_k+1) - G(s_k), the training between the two being the same for both runs.
+
+The model is a calibration of that marginal gain against the number of views, per selector:
+gain = a + b * log(views), fitted on benchmark runs (`fit_gain_model`) and judged leave one scene out
+(`early_stop_curve`, which also estimates what stopping at round k costs as G(end) - G(s_k)). A selector the
+model does not know uses the average over selectors (so does `random`, which has no score). The score of the pick
+is not used yet (`--log-candidate-scores` runs will calibrate it). There is no shipped model yet: fit one with
+`benchmarks/early_stop.py` on runs that include their `initial` reference.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Dict, Iterable, List, Optional, Sequence, Tuple
+
+import numpy as np
+
+DEFAULT_GAIN_MODEL = Path(__file__).resolve().parent / "assets" / "gain-model.json"  # none shipped yet
+ALL = "*"  # the average over selectors
+
+
+@dataclass
+class GainModel:
+    """Predicted test-PSNR change (dB) over the round that adds a view to `views` views, per selector."""
+
+    coefficients: Dict[str, Tuple[float, float]] = field(default_factory=dict)
+    """selector (or "*") -> (a, b): gain = a + b * log(views)."""
+    fitted_on: List[str] = field(default_factory=list)
+    """The scenes the model was fitted on."""
+
+    def predict(self, selector: str, views: int) -> float:
+        a, b = self.coefficients.get(selector, self.coefficients[ALL])
+        return a + b * math.log(max(views, 1))
+
+    def save(self, path: Path) -> Path:
+        from hpgs_ns.atomic_write import write_json_atomic
+
+        return write_json_atomic(Path(path), {"coefficients": {k: list(v) for k, v in self.coefficients.items()},
+                                              "fitted_on": self.fitted_on, "model": "gain = a + b * log(views)"})
+
+    @classmethod
+    def load(cls, path: Optional[Path] = None) -> "GainModel":
+        from hpgs_ns.errors import UserError
+
+        path = Path(path) if path is not None else DEFAULT_GAIN_MODEL
+        if not path.is_file():
+            raise UserError(f"no gain model at {path}: pass --pipeline.datamanager.gain-model FILE (fit one with "
+                            "benchmarks/early_stop.py) or drop --pipeline.datamanager.stop-when-gain-below")
+        try:
+            data = json.loads(path.read_text())
+            return cls({k: (float(a), float(b)) for k, (a, b) in data["coefficients"].items()}, list(data.get("fitted_on", [])))
+        except (OSError, ValueError, KeyError, TypeError) as err:
+            raise UserError(f"gain model {path} is not readable ({err}); fit one with benchmarks/early_stop.py or drop "
+                            "--pipeline.datamanager.stop-when-gain-below") from None
+
+
+def view_gains(rows: Iterable[dict]) -> List[Dict[str, object]]:
+    """Per run with a matching `initial` reference (same scene, protocol and seed), both with their test PSNR at
+    the round steps: the run's views before each round and its cumulative gain G at each round step and at the
+    end (`G` lists one more value than `views`)."""
+    rows = list(rows)
+    refs = {(r["scene"], r["protocol"], r["seed"]): r for r in rows
+            if r["selector"] == "initial" and r.get("psnr_at_round_steps")}
+    out = []
+    for r in rows:
+        ref = refs.get((r["scene"], r["protocol"], r["seed"]))
+        at = r.get("psnr_at_round_steps") or {}
+        if r["selector"] in ("initial", "all") or ref is None or not r.get("psnr_per_round"):
+            continue
+        rounds = [p for p in r["psnr_per_round"] if str(p["step"]) in at and str(p["step"]) in ref["psnr_at_round_steps"]]
+        if not rounds:
+            continue
+        gains = [at[str(p["step"])] - ref["psnr_at_round_steps"][str(p["step"])] for p in rounds]
+        gains.append(r["test"]["psnr"] - ref["test"]["psnr"])
+        out.append({"scene": r["scene"], "selector": r["selector"], "views": [p["num_views_before"] for p in rounds],
+                    "G": gains, "run": r})
+    return out
+
+
+def round_gains(rows: Iterable[dict]) -> List[Tuple[str, str, int, float]]:
+    """(scene, selector, views before the round, what the round's view gained: G(next) - G(this)) of every round
+    of runs with a matching `initial` reference (`view_gains`)."""
+    return [(v["scene"], v["selector"], views, v["G"][k + 1] - v["G"][k])
+            for v in view_gains(rows) for k, views in enumerate(v["views"])]
+
+
+def fit_gain_model(rows: Sequence[dict], exclude_scene: Optional[str] = None) -> GainModel:
+    """Least-squares fit of gain = a + b log(views) per selector and over all, on runs of other scenes."""
+    data = [g for g in round_gains(rows) if g[0] != exclude_scene]
+    if not data:
+        raise ValueError("no rounds to fit on: runs need their test PSNR at every round step (eval-each-round) and an "
+                         "`initial` reference of the same scene, protocol and seed")
+
+    def fit(points: List[Tuple[str, str, int, float]]) -> Tuple[float, float]:
+        x = np.array([[1.0, math.log(v)] for _, _, v, _ in points])
+        y = np.array([g for *_, g in points])
+        (a, b), *_ = np.linalg.lstsq(x, y, rcond=None)
+        return float(a), float(b)
+
+    coefficients = {ALL: fit(data)}
+    for selector in sorted({g[1] for g in data}):
+        points = [g for g in data if g[1] == selector]
+        if len({v for _, _, v, _ in points}) > 1:
+            coefficients[selector] = fit(points)
+    return GainModel(coefficients, sorted({g[0] for g in data}))
+
+
+def stop_round(model: GainModel, selector: str, views_per_round: Sequence[int], threshold: float) -> Optional[int]:
+    """The first round (index) whose predicted gain is below `threshold`, or None."""
+    for k, views in enumerate(views_per_round):
+        if model.predict(selector, views) < threshold:
+            return k
+    return None
+
+
+def early_stop_curve(rows: Sequence[dict], thresholds: Sequence[float]) -> List[Dict[str, float]]:
+    """Views saved against PSNR lost over thresholds, each scene judged with a model fitted on the others.
+
+    A run stopped before round k keeps the views it had then; what it loses is estimated as G(end) - G(s_k), the
+    gain its later views brought by the end (`view_gains`)."""
+    runs = [v for v in view_gains(rows) if not v["run"].get("smoke") and not v["run"].get("repeat")]
+    models = {scene: fit_gain_model(rows, exclude_scene=scene) for scene in sorted({v["scene"] for v in runs})}
+    curve = []
+    for threshold in thresholds:
+        saved, lost = [], []
+        for v in runs:
+            k = stop_round(models[v["scene"]], v["selector"], v["views"], threshold)
+            saved.append(0 if k is None else len(v["views"]) - k)
+            lost.append(0.0 if k is None else v["G"][-1] - v["G"][k])
+        curve.append({"threshold_db": threshold, "views_saved": float(np.mean(saved)) if runs else 0.0,
+                      "psnr_lost_db": float(np.mean(lost)) if runs else 0.0, "runs": len(runs)})
+    return curve

@@ -1,0 +1,75 @@
+"""stop-when-gain-below: the gain of a view measured against the `initial` reference, its calibration (fitted and
+judged leave one scene out), and a run that stops selecting when the next view is predicted to gain too little."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import pytest
+
+from conftest import run_training, short_config
+from hpgs_ns.early_stop import GainModel, early_stop_curve, fit_gain_model, round_gains, view_gains
+from hpgs_ns.errors import UserError
+
+
+def runs(scene: str, a: float, b: float, seed: int = 0) -> list:
+    """A selector run whose k-th view gains exactly a + b log(views), and its `initial` reference, which gains
+    0.3 dB of training per round whatever the views (the confound the reference removes)."""
+    steps = [400, 900, 1500, 2200]
+    views = [4, 5, 6, 7]
+    ref = {str(s): 15.0 + 0.3 * k for k, s in enumerate(steps)}
+    g, sel = 0.0, {}
+    for k, s in enumerate(steps):
+        sel[str(s)] = ref[str(s)] + g
+        g += a + b * math.log(views[k])
+    base = {"scene": scene, "protocol": "fisherrf", "seed": seed}
+    return [
+        {**base, "selector": "initial", "psnr_at_round_steps": ref, "test": {"psnr": 15.0 + 0.3 * 4}, "psnr_per_round": []},
+        {**base, "selector": "fisher", "psnr_at_round_steps": sel, "test": {"psnr": 15.0 + 0.3 * 4 + g}, "num_views_final": 8,
+         "psnr_per_round": [{"step": s, "num_views_before": v, "test_psnr": sel[str(s)]} for s, v in zip(steps, views)]},
+    ]
+
+
+def test_a_views_gain_is_measured_against_the_reference_at_the_same_steps():
+    rows = runs("s", 1.0, -0.4)
+    gains = round_gains(rows)
+    assert [(v, round(g, 9)) for _, _, v, g in gains] == [(v, round(1.0 - 0.4 * math.log(v), 9)) for v in (4, 5, 6, 7)]
+    assert view_gains(rows)[0]["G"][0] == 0.0  # before the first round: the same views as the reference
+    assert round_gains(runs("s", 1.0, -0.4)[1:]) == []  # no reference, no gain
+
+
+def test_the_calibration_is_recovered_and_judged_leaving_one_scene_out(tmp_path):
+    rows = runs("s1", 1.0, -0.4) + runs("s2", 1.0, -0.4) + runs("s3", 1.0, -0.4, seed=1)
+    model = fit_gain_model(rows)
+    a, b = model.coefficients["fisher"]
+    assert (a, b) == pytest.approx((1.0, -0.4)) and model.fitted_on == ["s1", "s2", "s3"]
+    assert model.predict("hpgs", 4) == pytest.approx(1.0 - 0.4 * math.log(4))  # unknown selector: the average
+    model.save(tmp_path / "m.json")
+    assert GainModel.load(tmp_path / "m.json").coefficients["fisher"] == pytest.approx((1.0, -0.4))
+    # 0.3 dB: views 4 -> 0.45, 5 -> 0.36, 6 -> 0.28: stop before the 3rd round, losing what rounds 3-4 gained
+    [never, at_03] = early_stop_curve(rows, [-1.0, 0.3])
+    assert never["views_saved"] == 0 and never["psnr_lost_db"] == 0
+    assert at_03["views_saved"] == 2 and at_03["psnr_lost_db"] == pytest.approx(2 - 0.4 * (math.log(6) + math.log(7)))
+    with pytest.raises(ValueError, match="an `initial` reference"):
+        fit_gain_model([r for r in rows if r["selector"] != "initial"])
+
+
+def test_a_run_stops_selecting_when_the_next_view_gains_too_little(tiny_scene, tmp_path):
+    model = tmp_path / "gain.json"
+    GainModel({"*": (4.0, -2.0)}, ["x"]).save(model)  # 4 - 2 log(views): 0.4 dB at 6 views, 0.1 at 7, < 0 at 8
+    cfg = short_config(tiny_scene, tmp_path / "run", steps=70, every=20, rounds=3, selector="farthest",
+                       stop_when_gain_below=0.2, gain_model=model, eval_each_round=True)
+    trainer = run_training(cfg)
+    log = json.loads((Path(trainer.base_dir) / "selected_views.json").read_text())
+    assert [r["step"] for r in log["rounds"]] == [20] and len(log["active"]) == 7
+    assert log["stopped"]["step"] == 40 and log["stopped"]["views"] == 7
+    assert log["stopped"]["predicted_gain_db"] == pytest.approx(4 - 2 * math.log(7))
+    # the test PSNR is still recorded where no round ran (what a reference run records)
+    assert list(log["test_psnr_at_round_steps"]) == ["20", "40", "60"]
+
+
+def test_a_missing_gain_model_is_a_one_line_error(tmp_path):
+    with pytest.raises(UserError, match="no gain model at .*nope.json: pass --pipeline.datamanager.gain-model FILE"):
+        GainModel.load(tmp_path / "nope.json")
