@@ -20,6 +20,7 @@ COMMANDS = {
     "train-pref": "hpgs_ns.preference.train:TrainPref",
     "eval-pref": "hpgs_ns.preference.evaluate:EvalPref",
     "label": "hpgs_ns.preference.label_server:Label",
+    "suggest": "hpgs_ns.suggest.command:Suggest",
 }
 
 

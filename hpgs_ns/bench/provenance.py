@@ -37,7 +37,7 @@ SELECTOR_FILES = {
 # Everything else: cannot change a run's numbers.
 NOT_CODE_FILES = (
     "__init__.py", "atomic_write.py", "candidate_log.py", "cli.py", "demo.py", "errors.py", "ns_train.py", "viewer.py",
-    "bench/", "preference/", "render/__init__.py", "scenes/__init__.py", "selectors/__init__.py", "selectors/",
+    "bench/", "preference/", "render/__init__.py", "scenes/__init__.py", "selectors/__init__.py", "selectors/", "suggest/",
 )
 
 
