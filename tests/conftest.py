@@ -3,6 +3,10 @@
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
+import time
+import urllib.request
 from pathlib import Path
 
 import pytest
@@ -65,3 +69,41 @@ def run_training(cfg):
     trainer.setup()
     trainer.train()
     return trainer
+
+
+def stock_ns_viewer_page(config: Path, env: dict) -> str:
+    """Start stock `ns-viewer --load-config CONFIG` on a free-ish port and return its page once it serves one
+    (asserting the viewer did not die); the viewer is stopped before returning."""
+    port = 7000 + (int(time.time()) % 900)
+    viewer = subprocess.Popen(
+        [sys.executable, "-m", "nerfstudio.scripts.viewer.run_viewer", "--load-config", str(config),
+         "--viewer.websocket-port", str(port), "--viewer.websocket-host", "127.0.0.1"],
+        env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+    )
+    try:
+        page, deadline = None, time.time() + 120
+        while time.time() < deadline and viewer.poll() is None and page is None:
+            try:
+                page = urllib.request.urlopen(f"http://127.0.0.1:{port}", timeout=2).read().decode()
+            except OSError:
+                time.sleep(1)
+        assert viewer.poll() is None, viewer.stdout.read().decode()[-2000:]
+        assert page is not None and "<html" in page.lower()
+        return page
+    finally:
+        viewer.kill()
+        viewer.wait()
+
+
+CHROMIUM = "/usr/bin/chromium"
+
+
+def playwright_or_skip():
+    """playwright's `sync_playwright`; skips the test (naming what is missing) without playwright or Chromium."""
+    try:
+        from playwright.sync_api import sync_playwright
+    except ImportError:
+        pytest.skip("playwright (pip) is not installed")
+    if not Path(CHROMIUM).is_file():
+        pytest.skip(f"{CHROMIUM} not found (apt-get install chromium)")
+    return sync_playwright

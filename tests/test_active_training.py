@@ -11,14 +11,12 @@ import json
 import shutil
 import subprocess
 import sys
-import time
-import urllib.request
 from pathlib import Path
 
 import pytest
 import torch
 
-from conftest import run_training, short_config
+from conftest import run_training, short_config, stock_ns_viewer_page
 
 
 @pytest.fixture(scope="module")
@@ -151,22 +149,4 @@ def test_stock_ns_eval_and_ns_viewer_open_the_checkpoint(trained, tmp_path):
     assert [final["results"][k] for k in quality] == pytest.approx([results[k] for k in quality], rel=1e-6, abs=1e-7)
     assert Path(final["checkpoint"]).name == Path(stock["checkpoint"]).name
 
-    port = 7000 + (int(time.time()) % 900)
-    viewer = subprocess.Popen(
-        [sys.executable, "-m", "nerfstudio.scripts.viewer.run_viewer", "--load-config", str(config),
-         "--viewer.websocket-port", str(port), "--viewer.websocket-host", "127.0.0.1"],
-        env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-    )
-    try:
-        page, deadline = None, time.time() + 120
-        while time.time() < deadline and viewer.poll() is None:
-            try:
-                page = urllib.request.urlopen(f"http://127.0.0.1:{port}", timeout=2).read().decode()
-                break
-            except OSError:
-                time.sleep(1)
-        assert viewer.poll() is None, viewer.stdout.read().decode()[-2000:]
-        assert page is not None and "<html" in page.lower()
-    finally:
-        viewer.kill()
-        viewer.wait()
+    stock_ns_viewer_page(config, env)

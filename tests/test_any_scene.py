@@ -9,15 +9,13 @@ import os
 import shutil
 import subprocess
 import sys
-import time
-import urllib.request
 from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
 from PIL import Image
 
-from conftest import require_shared, run_training, short_config
+from conftest import require_shared, run_training, short_config, stock_ns_viewer_page
 from hpgs_ns.datamanager import ActiveViewError
 from hpgs_ns.dataparser import (
     HpgsNerfstudioDataParserConfig, MipNerf360DataParserConfig, SceneDataError, read_ply_points, scene_dataparser,
@@ -72,23 +70,7 @@ def test_ns_train_hpgs_on_a_nerfstudio_data_capture_then_stock_ns_eval_and_ns_vi
     subprocess.run([sys.executable, "-m", "nerfstudio.scripts.eval", "--load-config", str(config), "--output-path", str(out)],
                    check=True, env=ENV, capture_output=True, timeout=600)
     assert 5 < json.loads(out.read_text())["results"]["psnr"] < 60
-    port = 7000 + (int(time.time()) % 900)
-    viewer = subprocess.Popen(
-        [sys.executable, "-m", "nerfstudio.scripts.viewer.run_viewer", "--load-config", str(config),
-         "--viewer.websocket-port", str(port), "--viewer.websocket-host", "127.0.0.1"],
-        env=ENV, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-    )
-    try:
-        page, deadline = None, time.time() + 120
-        while time.time() < deadline and viewer.poll() is None and page is None:
-            try:
-                page = urllib.request.urlopen(f"http://127.0.0.1:{port}", timeout=2).read().decode()
-            except OSError:
-                time.sleep(1)
-        assert viewer.poll() is None and page is not None and "<html" in page.lower()
-    finally:
-        viewer.kill()
-        viewer.wait()
+    stock_ns_viewer_page(config, ENV)
 
 
 def test_old_dataparser_spelling_fails_with_the_new_one(tmp_path):

@@ -21,6 +21,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from conftest import CHROMIUM, playwright_or_skip
 from hpgs_ns.preference import label_server as ls
 from hpgs_ns.preference.pairs import read_pairs
 
@@ -210,21 +211,8 @@ def test_order_uncertain_shows_least_sure_pairs_first(label_dir):
 
 # --- the page in a real headless Chromium ------------------------------------------------------------------
 
-CHROMIUM = "/usr/bin/chromium"
-
-
-def _playwright():
-    try:
-        from playwright.sync_api import sync_playwright
-    except ImportError:
-        pytest.skip("playwright (pip) is not installed")
-    if not Path(CHROMIUM).is_file():
-        pytest.skip(f"{CHROMIUM} not found (apt-get install chromium)")
-    return sync_playwright
-
-
 def test_label_page_in_headless_chromium(label_dir):
-    sync_playwright = _playwright()
+    sync_playwright = playwright_or_skip()
     book = ls.LabelBook(label_dir / "pairs.csv")
     server = ThreadingHTTPServer(("127.0.0.1", 0), ls.make_handler(book))
     threading.Thread(target=server.serve_forever, daemon=True).start()

@@ -16,9 +16,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from conftest import run_training, short_config
+from conftest import CHROMIUM, playwright_or_skip, run_training, short_config
 
-CHROMIUM = "/usr/bin/chromium"
 WIDTH, HEIGHT = 1024, 680  # software GL renders every frame on the CPU: a small page keeps the test fast
 
 
@@ -119,13 +118,7 @@ def look_at_all_cameras(viewer, pipeline) -> None:
 @pytest.fixture(scope="module")
 def sync_playwright():
     """playwright's entry point; skips (before any training) without playwright or Chromium."""
-    try:
-        from playwright.sync_api import sync_playwright
-    except ImportError:
-        pytest.skip("playwright (pip) is not installed")
-    if not Path(CHROMIUM).is_file():
-        pytest.skip(f"{CHROMIUM} not found (apt-get install chromium)")
-    return sync_playwright
+    return playwright_or_skip()
 
 
 def test_ns_viewer_shows_the_roles_and_the_rounds(sync_playwright, run_config, tmp_path):

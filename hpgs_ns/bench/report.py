@@ -14,7 +14,7 @@ import shlex
 from pathlib import Path
 from typing import Dict, List, Optional, Sequence, Tuple
 
-from hpgs_ns.atomic_write import write_text_atomic
+from hpgs_ns.atomic_write import atomic_path, write_text_atomic
 from hpgs_ns.bench import stats
 from hpgs_ns.bench.protocols import REFERENCES, row_order
 
@@ -60,6 +60,17 @@ def _mean_std(values: Sequence[float]) -> Tuple[float, float]:
     mean = sum(values) / n
     std = math.sqrt(sum((v - mean) ** 2 for v in values) / (n - 1)) if n > 1 else 0.0
     return mean, std
+
+
+def save_figure(fig, path: Path, rect=(0, 0, 1, 1)) -> Path:
+    """Lay out, write (temp file, then rename) and close a matplotlib figure."""
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout(rect=rect)
+    with atomic_path(path, suffix=".png") as tmp:
+        fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+    return Path(path)
 
 
 def solo(row: dict) -> bool:
@@ -145,10 +156,7 @@ def make_plots(rows: List[dict], out: Path) -> List[Path]:
                 labels.append(device)
         ax1.legend(handles, labels, fontsize=8)
         ax2.legend(fontsize=8)
-        fig.tight_layout()
-        path = out / f"{scene}-{protocol}.png"
-        fig.savefig(path, dpi=110)
-        plt.close(fig)
+        path = save_figure(fig, out / f"{scene}-{protocol}.png")
         paths.append(path)
         map_path = camera_map(group, out / f"{scene}-{protocol}-cameras.png")
         if map_path is not None:
@@ -217,9 +225,7 @@ def camera_map(group: List[dict], path: Path) -> Optional[Path]:
         ax.set(title=f"{sel} (seed {r['seed']})", xticks=[], yticks=[], aspect="equal")
     # Below the panels: inside one it would hide cameras.
     fig.legend(*axes[0][0].get_legend_handles_labels(), loc="lower center", ncol=3, fontsize=8, frameon=False)
-    fig.tight_layout(rect=(0, 0.07, 1, 1))
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path, rect=(0, 0.07, 1, 1))
     return path
 
 
@@ -292,10 +298,7 @@ def stress_plot(rows: List[dict], out: Path) -> List[Path]:
         ax.set_xticks(range(len(selectors)), selectors)
         ax.set(ylabel="test PSNR change from clean (dB)", title=f"{base} / {protocol}: stress (same seeds)")
         ax.legend(fontsize=8)
-        fig.tight_layout()
-        path = out / f"{base}-{protocol}-stress.png"
-        fig.savefig(path, dpi=110)
-        plt.close(fig)
+        path = save_figure(fig, out / f"{base}-{protocol}-stress.png")
         paths.append(path)
     return paths
 
@@ -490,10 +493,7 @@ def gain_plot(rows: List[dict], out: Path) -> List[Path]:
                title=f"{protocol}: paired gain over random (dots: scene x seed; diamond: mean over scenes, 95% CI)")
         ax.title.set_fontsize(9)
         ax.legend(fontsize=7, loc="best")
-        fig.tight_layout()
-        path = out / f"{protocol}-paired-gains.png"
-        fig.savefig(path, dpi=110)
-        plt.close(fig)
+        path = save_figure(fig, out / f"{protocol}-paired-gains.png")
         paths.append(path)
     return paths
 
