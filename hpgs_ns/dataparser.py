@@ -225,7 +225,7 @@ def _make_downscaled_folder(source: Path, image_filenames: List[Path], factor: i
     except OSError as err:
         shutil.rmtree(tmp, ignore_errors=True)
         raise SceneDataError(
-            f"could not write {target} ({err}); make the folder writable or pass mipnerf360 --downscale-factor 1"
+            f"could not write {target} ({err}); make the folder writable or pass the dataparser's --downscale-factor 1"
         ) from err
 
 

@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Run `hpgs bench` sweeps ON the GPU machine in the background, so they go on between device calls while the
-# machine stays held, and hand back what has finished. The first call carries .dev and the scenes' .devdata/<folder>
-# (scripts/device_suite_data.py); later calls on the still-warm machine need carry nothing more:
+# machine stays held (30 min from its start), and hand back what has finished. Every call must carry .dev and the
+# .devdata/<folder> of the scenes its sweeps still read (scripts/device_suite_data.py): a path a call does not name
+# in its carry is gone on the machine afterwards. .dev and the tree are ~48 MB of the 64 MiB, so two scenes a call.
 #   HPGS_GIT_COMMIT=<sha> bash scripts/device_sweep.sh start 'ARGS1' 'ARGS2' ...   # one `hpgs bench` per ARGS, in order
 #   bash scripts/device_sweep.sh collect SECONDS     # wait until the plan ends or SECONDS pass; results -> $OUT
 # Every sweep writes to /tmp/suite (seeded with benchmarks/results/suite, so finished runs are skipped) with
