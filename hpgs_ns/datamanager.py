@@ -61,6 +61,9 @@ class ActiveDatamanagerConfig(FullImageDatamanagerConfig):
     initial_views: Literal["even", "fps", "random"] = "even"
     """How the initial views are chosen: evenly spaced along the capture (file-name order); `fps`: the first
     view, then farthest camera centres (FisherRF's start); or uniformly at random (seeded)."""
+    exclude_views: Tuple[str, ...] = ()
+    """Training views left out of the run entirely, never active and never candidates: a capture that lacks them
+    (`benchmarks/suggest_check.py` withholds arcs of a capture this way)."""
     initial_view_names: Tuple[str, ...] = ()
     """Explicit initial views by name (image path relative to the data root, e.g. `images/0001.png`, or just the
     file name where that is unambiguous); overrides initial-views."""
@@ -152,6 +155,7 @@ class ActiveDatamanager(FullImageDatamanager):
                 "overlaps; choose a split that holds test views out (--eval-mode fraction, interval or filename)"
             )
         self.generator = torch.Generator().manual_seed(self.config.seed)
+        self.excluded = {self._view_index(v, "excluded") for v in self.config.exclude_views}
         self.active: List[int] = self._initial_views()
         self.history: List[Dict[str, Any]] = []
         if self.config.strict_init:
@@ -163,7 +167,7 @@ class ActiveDatamanager(FullImageDatamanager):
     @property
     def candidates(self) -> List[int]:
         """Withheld training views, in index order."""
-        active = set(self.active)
+        active = set(self.active) | getattr(self, "excluded", set())
         return [i for i in range(len(self.train_dataset)) if i not in active]
 
     @property
@@ -182,22 +186,26 @@ class ActiveDatamanager(FullImageDatamanager):
         self.train_unseen_cameras = self.sample_train_cameras()
 
     def _initial_views(self) -> List[int]:
-        n, k = len(self.train_dataset), self.config.num_initial_views
+        allowed = [i for i in range(len(self.train_dataset)) if i not in self.excluded]
+        n, k = len(allowed), self.config.num_initial_views
         if self.config.initial_view_names:
-            return sorted(self._view_index(v) for v in self.config.initial_view_names)
+            chosen = sorted(self._view_index(v, "initial") for v in self.config.initial_view_names)
+            if self.excluded & set(chosen):
+                raise ActiveViewError(f"initial view {self.image_names[min(self.excluded & set(chosen))]!r} is also excluded; drop it from one list")
+            return chosen
         if k < 1:
             raise ActiveViewError("--pipeline.datamanager.num-initial-views must be at least 1")
         if k >= n:
             CONSOLE.print(f"[yellow]num-initial-views={k} >= {n} training views: training on all of them")
-            return list(range(n))
+            return allowed
         if self.config.initial_views == "even":
-            return sorted({int(round(x)) for x in np.linspace(0, n - 1, k)})
+            return sorted({allowed[int(round(x))] for x in np.linspace(0, n - 1, k)})
         if self.config.initial_views == "random":
-            return sorted(torch.randperm(n, generator=self.generator)[:k].tolist())
-        centres = self.train_dataset.cameras.camera_to_worlds[:, :3, 3]
-        return sorted(farthest_point_order(centres, k, start=0))
+            return sorted(allowed[i] for i in torch.randperm(n, generator=self.generator)[:k].tolist())
+        centres = self.train_dataset.cameras.camera_to_worlds[torch.tensor(allowed), :3, 3]
+        return sorted(allowed[i] for i in farthest_point_order(centres, k, start=0))
 
-    def _view_index(self, name: str) -> int:
+    def _view_index(self, name: str, role: str = "initial") -> int:
         """Index of the training view called `name` (its full name, or its file name if no other view has it)."""
         if name in self.image_names:
             return self.image_names.index(name)
@@ -205,8 +213,8 @@ class ActiveDatamanager(FullImageDatamanager):
         if len(matches) == 1:
             return matches[0]
         if matches:
-            raise ActiveViewError(f"initial view {name!r} names several views; write it whole, e.g. {self.image_names[matches[0]]!r}")
-        raise ActiveViewError(f"initial view {name!r} is not a training view (test views cannot be used)")
+            raise ActiveViewError(f"{role} view {name!r} names several views; write it whole, e.g. {self.image_names[matches[0]]!r}")
+        raise ActiveViewError(f"{role} view {name!r} is not a training view (test views cannot be used)")
 
     def _keep_points_seen_by_initial_views(self, min_views: int = 2) -> None:
         """Filter the dataparser's seed points in place (the pipeline hands them to the model after this)."""

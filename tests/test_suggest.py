@@ -116,3 +116,34 @@ def test_a_run_without_checkpoint_is_a_one_line_error(run_config, tmp_path):
         load_run(folder / "config.yml")
     with pytest.raises(SuggestError, match="nope.yml not found; pass --load-config RUN/config.yml"):
         load_run(tmp_path / "nope.yml")
+
+
+def test_excluded_views_are_never_trained_on_nor_candidates(tiny_scene, tmp_path):
+    """The withheld-arc check (`benchmarks/suggest_check.py`) trains on a capture that lacks an arc."""
+    excluded = [f"images/{i:04d}.png" for i in (1, 2, 3, 4, 5, 6, 7)]
+    cfg = short_config(tiny_scene, tmp_path, steps=21, every=20, rounds=1, initial=100000, exclude_views=tuple(excluded))
+    dm = run_training(cfg).pipeline.datamanager
+    names = {dm.image_names[i] for i in dm.active} | {dm.image_names[i] for i in dm.candidates}
+    assert len(dm.active) == 35 - 7 and not names & set(excluded) and dm.candidates == []
+
+
+def test_arcs_and_the_photos_nearest_to_suggestions(run):
+    import sys
+
+    from conftest import REPO
+
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    from suggest_check import arc_blocks, nearest_photos
+
+    cameras = run.pipeline.datamanager.train_dataset.cameras
+    blocks = arc_blocks(cameras, 3, 60.0)
+    assert len(blocks) == 3 and all(5 <= len(b) <= 7 for b in blocks)  # 35 views on a ring: 60 of 360 degrees each
+    assert not set(blocks[0]) & set(blocks[1])
+    block = blocks[1]
+    c2w = cameras.camera_to_worlds[block]
+    at = [torch.cat([c2w[j], torch.tensor([[0, 0, 0, 1.0]])]).tolist() for j in (2, 2)]
+    taken = nearest_photos(at, c2w, block)
+    # the second suggestion sits on a photo already taken: it gets that photo's nearest neighbour in the block
+    d = (c2w[:, :3, 3] - c2w[2, :3, 3]).norm(dim=1)
+    d[2] = float("inf")
+    assert taken == [block[2], block[int(d.argmin())]]

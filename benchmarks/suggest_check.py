@@ -1,0 +1,172 @@
+"""Do `hpgs suggest`'s poses help? Withhold an arc of a real capture, suggest, take the photos nearest to the
+suggestions from the arc, retrain, and compare test PSNR with the same done for `farthest`'s and `random`'s poses.
+
+For each scene (of a suite), seed and block (an arc of the training cameras' azimuths around the capture's
+centre): a base run trains on every training view but the arc; `hpgs suggest` (in-process, on the base run)
+proposes `--num` orbit poses per selector; each pose is matched to the nearest photo of the arc not yet taken; a
+run per selector then trains from scratch on every view but the arc plus its matched photos (same seed and steps).
+Runs are paired by (scene, block, seed); gains over `farthest` and `random` get the benchmark's intervals
+(`hpgs_ns.bench.stats`, the unit being the scene). Results: one JSON per run under OUT, `suggest_check.md`.
+
+    python benchmarks/suggest_check.py --suite real6 --suite-scenes bonsai stitch --data-root .devdata \
+        --blocks 3 --seeds 0 --selectors hpgs fisher farthest random --out benchmarks/results/suggest
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shlex
+import subprocess
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import Dict, List, Sequence
+
+import torch
+
+from hpgs_ns.atomic_write import write_json_atomic, write_text_atomic
+from hpgs_ns.bench import stats
+from hpgs_ns.bench.suites import Scene, load_suite
+from hpgs_ns.dataparser import DATAPARSERS, view_name
+from hpgs_ns.ns_train import ns_train_command
+from hpgs_ns.suggest import candidates as cand
+
+
+def training_cameras(scene: Scene):
+    """(view names, cameras) of the scene's training split, as `ns-train hpgs` reads them."""
+    import dataclasses
+
+    import tyro
+
+    default = dataclasses.replace(DATAPARSERS[scene.dataparser], data=scene.path)
+    words = [w for k, v in scene.option_dict().items() for w in (f"--{k}", v)]
+    config = tyro.cli(type(default), args=words, default=default)
+    outputs = config.setup().get_dataparser_outputs("train")
+    return [view_name(p, scene.path) for p in outputs.image_filenames], outputs.cameras
+
+
+def arc_blocks(cameras, blocks: int, arc_deg: float) -> List[List[int]]:
+    """Training views in each of `blocks` arcs of `arc_deg` degrees, evenly spaced in azimuth around the centre."""
+    lay = cand.layout(cameras.camera_to_worlds)
+    u = lay.up
+    a = torch.nn.functional.normalize(torch.linalg.cross(u, torch.tensor([1.0, 0, 0]) if abs(u[0]) < 0.9 else torch.tensor([0, 1.0, 0]), dim=0), dim=0)
+    b = torch.linalg.cross(u, a, dim=0)
+    rel = cameras.camera_to_worlds[:, :3, 3] - lay.centre
+    azimuth = torch.rad2deg(torch.atan2(rel @ b, rel @ a)) % 360
+    return [[i for i, z in enumerate(azimuth.tolist()) if (z - k * 360 / blocks) % 360 < arc_deg] for k in range(blocks)]
+
+
+def nearest_photos(suggested_c2w: Sequence, block_c2w: torch.Tensor, block: Sequence[int]) -> List[int]:
+    """For each suggestion in turn, the nearest photo of the block not matched yet (by camera centre)."""
+    free = list(block)
+    out = []
+    for c2w in suggested_c2w:
+        if not free:
+            break
+        centre = torch.tensor(c2w)[:3, 3]
+        d = [float((block_c2w[block.index(i)][:3, 3] - centre).norm()) for i in free]
+        out.append(free.pop(min(range(len(free)), key=d.__getitem__)))
+    return out
+
+
+def train(scene: Scene, out: Path, name: str, exclude: List[str], seed: int, args) -> dict:
+    """One run on every training view but `exclude`; returns its ns-eval metrics."""
+    run_root = out / "_runs"
+    folder = run_root / scene.name / "hpgs" / name
+    cmd = ns_train_command(
+        scene.path, run_root, scene.name, name, args.steps,
+        trainer={"machine.seed": seed, "final-eval-json": folder / "eval.json"},
+        datamanager={"num-initial-views": 100000, "max-rounds": 0, "seed": seed,
+                     **({"exclude-views": exclude} if exclude else {})},
+        model={"rasterizer": args.rasterizer}, extra=shlex.split(args.extra_args),
+        dataparser=scene.dataparser, dataparser_options=scene.option_dict(),
+    )
+    log = out / "_runs" / f"{scene.name}-{name}.log"
+    log.parent.mkdir(parents=True, exist_ok=True)
+    with open(log, "w") as f:
+        if subprocess.run(cmd, stdout=f, stderr=subprocess.STDOUT).returncode != 0:
+            raise SystemExit(f"suggest_check: {name} failed; see {log}")
+    return {"test": json.loads((folder / "eval.json").read_text())["results"], "config": str(folder / "config.yml"),
+            "command": shlex.join(cmd)}
+
+
+def check_block(scene: Scene, seed: int, k: int, block: List[int], names: List[str], cameras, args) -> List[dict]:
+    from hpgs_ns.suggest.command import Suggest, load_run, suggest
+
+    out = args.out
+    label = f"block{k}-seed{seed}"
+    withheld = [names[i] for i in block]
+    base = train(scene, out, f"{label}-none", withheld, seed, args)
+    run = load_run(Path(base["config"]))
+    picks: Dict[str, List[int]] = {}
+    for selector in args.selectors:
+        answer = suggest(run, Suggest(Path(base["config"]), num=args.num, selector=selector, candidates="orbit",
+                                      count=args.count, min_distance=args.min_distance, seed=seed))
+        picks[selector] = nearest_photos([s["camera_to_world"] for s in answer["suggestions"]],
+                                         run.pipeline.datamanager.train_dataset.cameras.camera_to_worlds[block], block)
+    del run
+
+    def final(selector: str) -> dict:
+        taken = picks[selector]
+        result = train(scene, out, f"{label}-{selector}", [names[i] for i in block if i not in taken], seed, args)
+        return {"scene": scene.name, "protocol": "withheld-arc", "selector": selector, "seed": k * 1000 + seed,
+                "block": k, "block_views": len(block), "photos_taken": [names[i] for i in taken], **result}
+
+    with ThreadPoolExecutor(args.parallel) as pool:
+        rows = list(pool.map(final, args.selectors))
+    rows.append({"scene": scene.name, "protocol": "withheld-arc", "selector": "none", "seed": k * 1000 + seed, "block": k,
+                 "block_views": len(block), "photos_taken": [], **base})
+    for r in rows:
+        write_json_atomic(out / scene.name / f"{label}-{r['selector']}.json", r)
+    return rows
+
+
+def report(rows: List[dict]) -> str:
+    """Gains of each selector's photos over farthest's and random's, paired by (scene, block, seed)."""
+    selectors = sorted({r["selector"] for r in rows} - {"none"})
+    pairs: List = []
+    for b in ("farthest", "random"):
+        pairs += [(s, b) for s in selectors if s != b and b in selectors and (b, s) not in pairs]
+    comparisons = stats.compare(rows, "withheld-arc", pairs, metric="psnr", primary=[p for p in pairs if p[1] == "farthest"])
+    lines = ["Test PSNR after adding the withheld photos nearest to each selector's suggestions (pairs: scene x block "
+             "x seed; intervals over scenes).", "", stats.comparison_table(comparisons)]
+    return "\n".join(lines) + "\n"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--suite", default="real6")
+    ap.add_argument("--suite-scenes", nargs="+", default=[])
+    ap.add_argument("--data-root", type=Path, default=Path("../shared/data"))
+    ap.add_argument("--blocks", type=int, default=3, help="arcs per scene, evenly spaced in azimuth")
+    ap.add_argument("--arc", type=float, default=60.0, help="width of each arc, degrees")
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0])
+    ap.add_argument("--num", type=int, default=5, help="suggestions (and photos added) per selector")
+    ap.add_argument("--count", type=int, default=96, help="orbit candidate poses")
+    ap.add_argument("--min-distance", type=float, default=0.5)
+    ap.add_argument("--selectors", nargs="+", default=["hpgs", "fisher", "farthest", "random"])
+    ap.add_argument("--steps", type=int, default=15000)
+    ap.add_argument("--rasterizer", default="auto")
+    ap.add_argument("--extra-args", default="")
+    ap.add_argument("--parallel", type=int, default=4, help="final runs trained at once")
+    ap.add_argument("--out", type=Path, default=Path("benchmarks/results/suggest"))
+    args = ap.parse_args()
+    rows = []
+    for scene in load_suite(args.suite, args.data_root, args.suite_scenes):
+        if scene.smoke:
+            continue
+        names, cameras = training_cameras(scene)
+        for seed in args.seeds:
+            for k, block in enumerate(arc_blocks(cameras, args.blocks, args.arc)):
+                if len(block) < args.num:
+                    continue
+                rows += check_block(scene, seed, k, block, names, cameras, args)
+    text = report(rows)
+    write_text_atomic(args.out / "suggest_check.md", text)
+    print(text)
+    cells = {(r["scene"], r["seed"]) for r in rows}
+    print(f"{len(rows)} runs in {len(cells)} (scene, block, seed) cells -> {args.out}")
+
+
+if __name__ == "__main__":
+    main()
