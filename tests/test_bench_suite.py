@@ -228,7 +228,12 @@ def test_smoke_scenes_repeats_and_stress_copies_stay_out_of_the_comparison():
 def test_noise_and_throughput_tables():
     data = [{"scene": "a", "protocol": "p", "selector": "random", "seed": s, "repeat": r, "test": {"psnr": 20 + s + 0.1 * r}}
             for s in (0, 1, 2) for r in (0, 1)]
-    assert "| a | p | random | 2 x 3 | 0.07 | 1.00 |" in noise_table(data)
+    assert "| a | p | random | 0, 1, 2 | 2 | 0.07 | 3 | 1.00 |" in noise_table(data)
+    # One seed repeated, its repeat listed first (as a glob sorts seed0-repeat1.json before seed0.json): the seed
+    # spread still compares repeat 0 of each seed.
+    one = [{"scene": "b", "protocol": "p", "selector": "farthest", "seed": s, "repeat": r, "test": {"psnr": v}}
+           for s, r, v in ((0, 1, 20.70), (0, 0, 20.59), (1, 0, 20.78))]
+    assert "| b | p | farthest | 0 | 2 | 0.08 | 2 | 0.13 |" in noise_table(one)
     runs = [{"device": "NVIDIA H100 80GB HBM3", "runs_per_gpu": 4, "sweep_id": "x", "started_at": 100.0 + k,
              "wall_seconds": 396.0} for k in range(4)]
     assert "| H100 | 4 | 4 | 399 | 36.1 | 396 |" in throughput_table(runs)

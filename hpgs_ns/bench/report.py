@@ -424,21 +424,26 @@ def scenes_table(rows: List[dict]) -> str:
 
 def noise_table(rows: List[dict]) -> str:
     """Repeat noise against seed spread: the standard deviation of test PSNR over repeats of one (scene,
-    selector, seed), averaged over seeds, beside the one over seeds (first repeats); "" without repeats."""
-    repeated: Dict[Tuple[str, str, str], Dict[int, List[float]]] = {}
+    selector, seed), averaged over the seeds that were repeated, beside the one over seeds (repeat 0 of each);
+    "" without repeats."""
+    repeated: Dict[Tuple[str, str, str], Dict[int, Dict[int, float]]] = {}
     for r in rows:
-        repeated.setdefault((r["scene"], r["protocol"], r["selector"]), {}).setdefault(r["seed"], []).append(r["test"]["psnr"])
+        key = (r["scene"], r["protocol"], r["selector"])
+        repeated.setdefault(key, {}).setdefault(r["seed"], {})[r.get("repeat") or 0] = r["test"]["psnr"]
     keys = [k for k, by_seed in repeated.items() if any(len(v) > 1 for v in by_seed.values())]
     if not keys:
         return ""
-    lines = ["| scene | protocol | selector | repeats x seeds | repeat SD (dB) | seed SD (dB) |", "|---|---|---|---|---|---|"]
+    lines = ["| scene | protocol | selector | seeds repeated | runs per repeated seed | repeat SD (dB) | seeds | seed SD (dB) |",
+             "|---|---|---|---|---|---|---|---|"]
     for key in sorted(keys):
         by_seed = repeated[key]
-        rep = [_mean_std(v)[1] for v in by_seed.values() if len(v) > 1]
-        firsts = [v[0] for v in by_seed.values()]
+        again = {seed: runs for seed, runs in by_seed.items() if len(runs) > 1}
+        rep = [_mean_std(list(runs.values()))[1] for runs in again.values()]
+        firsts = [runs[0] for runs in by_seed.values() if 0 in runs]
         seed_sd = f"{_mean_std(firsts)[1]:.2f}" if len(firsts) > 1 else "–"
-        reps = max(len(v) for v in by_seed.values())
-        lines.append(f"| {key[0]} | {key[1]} | {key[2]} | {reps} x {len(by_seed)} | {sum(rep) / len(rep):.2f} | {seed_sd} |")
+        per_seed = sorted({len(runs) for runs in again.values()})
+        lines.append(f"| {key[0]} | {key[1]} | {key[2]} | {', '.join(map(str, sorted(again)))} | "
+                     f"{'/'.join(map(str, per_seed))} | {sum(rep) / len(rep):.2f} | {len(firsts)} | {seed_sd} |")
     return "\n".join(lines) + "\n"
 
 
