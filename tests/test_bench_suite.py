@@ -237,6 +237,11 @@ def test_noise_and_throughput_tables():
     runs = [{"device": "NVIDIA H100 80GB HBM3", "runs_per_gpu": 4, "sweep_id": "x", "started_at": 100.0 + k,
              "wall_seconds": 396.0} for k in range(4)]
     assert "| H100 | 4 | 4 | 399 | 36.1 | 396 |" in throughput_table(runs)
+    # Two sweeps on one machine at the same time (3 and 4 runs per GPU): one span, 7 at once, not two rows.
+    shared = [{"device": "NVIDIA H100 80GB HBM3", "runs_per_gpu": n, "sweep_id": f"vm-500.{pid}", "started_at": 500.0,
+               "wall_seconds": 900.0} for pid, n in ((11, 3),) * 3 + ((12, 4),) * 4]
+    table = throughput_table(runs + shared)
+    assert "| H100 | 7 | 7 | 900 | 28.0 | 900 |" in table and table.count("| H100 |") == 2
 
 
 def test_report_only_writes_the_readme_section(tmp_path):

@@ -448,20 +448,36 @@ def noise_table(rows: List[dict]) -> str:
 
 
 def throughput_table(rows: List[dict]) -> str:
-    """Runs per hour per device and runs-per-GPU, over each sweep's span (first start to last end); "" without
-    timestamps."""
-    sweeps: Dict[str, List[dict]] = {}
-    for r in rows:
-        if r.get("sweep_id") and r.get("started_at"):
-            sweeps.setdefault(r["sweep_id"], []).append(r)
-    if not sweeps:
+    """Runs per hour per device against how many ran at once, over each busy span of one machine (runs whose
+    times overlap, whichever sweep started them: two sweeps sharing a GPU count together); "" without
+    timestamps. "At once" is measured from the runs' start and end times, not read from `--runs-per-gpu`."""
+    timed = [r for r in rows if r.get("sweep_id") and r.get("started_at") and r.get("wall_seconds")]
+    if not timed:
         return ""
-    lines = ["| device | runs per GPU | runs | span (s) | runs per hour | mean wall per run (s) |", "|---|---|---|---|---|---|"]
-    for sweep in sorted(sweeps.values(), key=lambda g: (short_device(g[0]), g[0].get("runs_per_gpu", 1), min(r["started_at"] for r in g))):
-        span = max(r["started_at"] + r["wall_seconds"] for r in sweep) - min(r["started_at"] for r in sweep)
-        wall = sum(r["wall_seconds"] for r in sweep) / len(sweep)
-        lines.append(f"| {short_device(sweep[0])} | {sweep[0].get('runs_per_gpu', 1)} | {len(sweep)} | {span:.0f} | "
-                     f"{3600 * len(sweep) / span:.1f} | {wall:.0f} |")
+    machine = lambda r: (short_device(r), str(r["sweep_id"]).rsplit("-", 1)[0])  # noqa: E731 (host of the sweep)
+    spans: List[List[dict]] = []
+    for r in sorted(timed, key=lambda r: (machine(r), r["started_at"])):
+        last = spans[-1] if spans else None
+        if last and machine(last[0]) == machine(r) and r["started_at"] < max(x["started_at"] + x["wall_seconds"] for x in last):
+            last.append(r)
+        else:
+            spans.append([r])
+
+    def at_once(span: List[dict]) -> int:
+        events = sorted([(r["started_at"], 1) for r in span] + [(r["started_at"] + r["wall_seconds"], -1) for r in span])
+        running = peak = 0
+        for _, change in events:
+            running += change
+            peak = max(peak, running)
+        return peak
+
+    lines = ["| device | runs at once (most) | runs | span (s) | runs per hour | mean wall per run (s) |",
+             "|---|---|---|---|---|---|"]
+    for span in sorted(spans, key=lambda g: (short_device(g[0]), at_once(g), g[0]["started_at"])):
+        length = max(r["started_at"] + r["wall_seconds"] for r in span) - min(r["started_at"] for r in span)
+        wall = sum(r["wall_seconds"] for r in span) / len(span)
+        lines.append(f"| {short_device(span[0])} | {at_once(span)} | {len(span)} | {length:.0f} | "
+                     f"{3600 * len(span) / length:.1f} | {wall:.0f} |")
     return "\n".join(lines) + "\n"
 
 

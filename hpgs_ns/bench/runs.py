@@ -466,7 +466,8 @@ def run_sweep(bench: Bench, jobs: Sequence[Job], config: ExecutorConfig) -> None
     bench = replace(bench, out=bench.out.resolve())
     jobs = [job._replace(scene=dataclasses.replace(job.scene, path=job.scene.path.resolve())) for job in jobs]
     executor = make_executor(config, bench.out)
-    sweep = {"id": f"{socket.gethostname()}-{int(time.time())}", "runs_per_gpu": runs_per_device(config)}
+    # host-time.pid: two sweeps started in the same second on one machine stay apart
+    sweep = {"id": f"{socket.gethostname()}-{int(time.time())}.{os.getpid()}", "runs_per_gpu": runs_per_device(config)}
     CONSOLE.print(f"hpgs bench: {len(jobs)} runs to do ({config.executor}, {sweep['runs_per_gpu']} per device)")
     failures: List[str] = []
     columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
