@@ -1,0 +1,177 @@
+"""A preference model that generalises: choose its recipe leave one scene out on oracle-labelled renders, then
+score the HP-GS human labels of garden once.
+
+Input: `hpgs collect` folders of several scenes (renders/ and renders.csv: each render's PSNR/SSIM/LPIPS against
+its photo). Every render pair of a scene gets an oracle label from LPIPS (the one with the higher LPIPS is
+worse), so no person and no garden label is involved. For each recipe (backbone, L2 penalty on the head, which
+pairs train it) and each scene S, a head is fitted on the other scenes' pairs and scored on S's pairs; the recipe
+with the best mean over scenes wins. Only then is the winner, trained on every oracle scene, scored on garden's
+human labels (never seen in training or in the choice). With --write-model it is saved with that record.
+
+    hpgs collect --data SCENE --out pref/SCENE ...           # for each scene (GPU, or CPU at small size)
+    python benchmarks/pref_loso.py pref/juicebox pref/stitch ... --out benchmarks/results/pref_loso.json \\
+        [--write-model hpgs_ns/assets/preference-default.pt]
+
+Frozen backbones only (the head is fitted on cached features with L-BFGS: `hpgs_ns.preference.train.fit_head`),
+so a recipe costs seconds once the features are computed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import hashlib
+import itertools
+import json
+import os
+import random
+import statistics
+import sys
+import time
+from pathlib import Path
+from typing import Dict, List, Tuple
+
+import torch
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from hpgs_ns.atomic_write import write_text_atomic  # noqa: E402
+from hpgs_ns.preference.evaluate import index_pairs, pair_accuracy_from_scores, raw_features_of  # noqa: E402
+from hpgs_ns.preference.model import PreferenceModel  # noqa: E402
+from hpgs_ns.preference.pairs import read_usable_pairs  # noqa: E402
+from hpgs_ns.preference.train import fit_head  # noqa: E402
+
+Render = Tuple[Path, int, str, float]  # (image, training step, view, LPIPS against its photo)
+
+
+def read_renders(folder: Path) -> List[Render]:
+    with open(folder / "renders.csv", newline="", encoding="utf-8") as f:
+        return [(folder / r["image"], int(r["step"]), r["view"], float(r["lpips"])) for r in csv.DictReader(f)]
+
+
+def oracle_pairs(renders: List[Render], n: int, same_step: bool, seed: int) -> List[Tuple[int, int, int]]:
+    """n random pairs (i, j, label: 1 = i worse by LPIPS); `same_step`: both renders from one training step
+    (different views at one moment, as a selector compares candidates). Ties are dropped."""
+    rng = random.Random(seed)
+    if same_step:
+        by_step: Dict[int, List[int]] = {}
+        for k, r in enumerate(renders):
+            by_step.setdefault(r[1], []).append(k)
+        pool = [p for ks in by_step.values() for p in itertools.combinations(ks, 2)]
+    else:
+        pool = list(itertools.combinations(range(len(renders)), 2))
+    out = []
+    for i, j in rng.sample(pool, min(n, len(pool))):
+        if renders[i][3] != renders[j][3]:
+            out.append((i, j, int(renders[i][3] > renders[j][3])))
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("scenes", type=Path, nargs="+", help="`hpgs collect` output folders, one per scene")
+    ap.add_argument("--garden", type=Path, default=None, help="hpgs-pairs-garden folder (default: ../shared/data)")
+    ap.add_argument("--backbones", nargs="*", default=["alexnet", "vgg16"])
+    ap.add_argument("--l2", type=float, nargs="*", default=[0.01, 0.1, 1.0])
+    ap.add_argument("--train-pairs", type=int, default=3000, help="oracle pairs per training scene")
+    ap.add_argument("--test-pairs", type=int, default=2000, help="oracle pairs per held-out scene (any two renders)")
+    ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "pref_loso.json")
+    ap.add_argument("--write-model", type=Path, default=None)
+    args = ap.parse_args()
+    shared = Path(os.environ.get("HPGS_SHARED", REPO / ".." / "shared"))
+    garden = args.garden or shared / "data" / "hpgs-pairs-garden"
+    if not (garden / "pairs.csv").is_file():
+        raise SystemExit(f"pref_loso: {garden / 'pairs.csv'} not found; pass --garden or set HPGS_SHARED")
+    for folder in args.scenes:
+        if not (folder / "renders.csv").is_file():
+            raise SystemExit(f"pref_loso: {folder / 'renders.csv'} not found; make it with `hpgs collect --out {folder}`")
+    torch.set_num_threads(min(4, os.cpu_count() or 1))
+
+    names = [f.name for f in args.scenes]
+    renders = {f.name: read_renders(f) for f in args.scenes}
+    offset, start = 0, {}
+    for name in names:
+        start[name] = offset
+        offset += len(renders[name])
+    paths = [r[0] for name in names for r in renders[name]]
+    test = {name: oracle_pairs(renders[name], args.test_pairs, same_step=False, seed=1) for name in names}
+    train = {(name, same): oracle_pairs(renders[name], args.train_pairs, same_step=same, seed=0)
+             for name in names for same in (False, True)}
+    print(f"{len(names)} scenes, {len(paths)} renders: " + ", ".join(f"{n} {len(renders[n])}" for n in names))
+
+    def as_index(pairs_by_scene: Dict[str, List[Tuple[int, int, int]]]) -> Tuple[torch.Tensor, torch.Tensor]:
+        rows = [(start[s] + i, start[s] + j, y) for s, ps in pairs_by_scene.items() for i, j, y in ps]
+        t = torch.tensor(rows, dtype=torch.long)
+        return t[:, :2], t[:, 2]
+
+    results, features, models = [], {}, {}
+    for backbone in args.backbones:
+        t0 = time.time()
+        models[backbone] = PreferenceModel(backbone, pretrained=True).eval()
+        features[backbone] = raw_features_of(models[backbone], paths, batch_size=32)
+        print(f"{backbone}: features of {len(paths)} renders in {time.time() - t0:.0f} s")
+        for l2, same in itertools.product(args.l2, (False, True)):
+            per_scene = {}
+            for held in names:
+                index, labels = as_index({s: train[(s, same)] for s in names if s != held})
+                used = torch.unique(index)  # only training renders set the feature statistics
+                remap = torch.full((len(paths),), -1, dtype=torch.long)
+                remap[used] = torch.arange(len(used))
+                model = models[backbone]
+                fit_head(model, features[backbone][used], remap[index], labels, l2=l2)
+                with torch.no_grad():
+                    scores = model.score_features(model.standardise(features[backbone]))
+                t_index, t_labels = as_index({held: test[held]})
+                per_scene[held] = pair_accuracy_from_scores(scores, t_index, t_labels)
+            recipe = {"backbone": backbone, "l2": l2, "pairs": "same step" if same else "any two renders"}
+            mean = statistics.mean(per_scene.values())
+            results.append({**recipe, "loso_mean": mean, "per_scene": per_scene})
+            print(f"  l2 {l2:g}, {recipe['pairs']}: leave-one-scene-out {mean:.3f} ("
+                  + ", ".join(f"{s} {a:.3f}" for s, a in per_scene.items()) + ")")
+
+    best = max(results, key=lambda r: r["loso_mean"])
+    same = best["pairs"] == "same step"
+    model = models[best["backbone"]]
+    index, labels = as_index({s: train[(s, same)] for s in names})
+    fit_head(model, features[best["backbone"]], index, labels, l2=best["l2"])
+    garden_pairs = read_usable_pairs([garden / "pairs.csv"])
+    g_images, g_index, g_labels = index_pairs(garden_pairs)
+    with torch.no_grad():
+        g_scores = model.score_features(model.standardise(raw_features_of(model, g_images, batch_size=32)))
+    garden_acc = pair_accuracy_from_scores(g_scores, g_index, g_labels)
+    constant = float(g_labels.float().mean())
+    print(f"chosen: {best['backbone']}, l2 {best['l2']:g}, {best['pairs']} (leave-one-scene-out {best['loso_mean']:.3f}); "
+          f"garden human labels: {garden_acc:.3f} on {len(garden_pairs)} pairs (constant answer {constant:.3f})")
+    record = {
+        "recipe": {k: best[k] for k in ("backbone", "l2", "pairs")},
+        "oracle": "LPIPS of each render against its photo (higher = worse)",
+        "scenes": {n: {"renders": len(renders[n]), "train_pairs_per_policy": args.train_pairs,
+                       "test_pairs": len(test[n])} for n in names},
+        "leave_one_scene_out": results,
+        "chosen_loso_mean": best["loso_mean"],
+        "garden_human_accuracy": garden_acc,
+        "garden_pairs": len(garden_pairs),
+        "garden_constant_answer": constant,
+        "command": " ".join(["python", "benchmarks/pref_loso.py"] + sys.argv[1:]),
+    }
+    write_text_atomic(args.out, json.dumps(record, indent=1) + "\n")
+    print(f"wrote {args.out}")
+    if args.write_model:
+        renders_csv = [f / "renders.csv" for f in args.scenes]
+        model.meta = {
+            "training_data": {"oracle_scenes": names, "renders_csv_sha256": [hashlib.sha256(p.read_bytes()).hexdigest()
+                                                                           for p in renders_csv],
+                              "train_pairs": int(len(labels)), "human_labels": "none (garden never seen)"},
+            "recipe": record["recipe"],
+            "leave_one_scene_out_accuracy": best["loso_mean"],
+            "garden_human_accuracy": garden_acc,
+            "backbone_trained": False,
+            "made_by": record["command"],
+        }
+        model.save(args.write_model)
+        print(f"wrote {args.write_model}")
+
+
+if __name__ == "__main__":
+    main()
