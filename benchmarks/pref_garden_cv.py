@@ -37,7 +37,7 @@ from hpgs_ns.preference.evaluate import index_pairs, pair_accuracy_from_scores, 
 from hpgs_ns.preference.model import BackboneUnavailable, PreferenceModel  # noqa: E402
 from hpgs_ns.preference.pairs import image_folds, load_image, read_usable_pairs  # noqa: E402
 from hpgs_ns.offline_weights import cached_resnet34_weights  # noqa: E402
-from hpgs_ns.preference.train import TrainPref, fit_head  # noqa: E402
+from hpgs_ns.preference.train import TrainPref, fit_head_and_score  # noqa: E402
 
 
 def laplacian_variance(image: torch.Tensor) -> float:
@@ -124,12 +124,7 @@ def main() -> None:
         raw = raw_features_of(model, images, batch_size=16)
 
         def learned(train: torch.Tensor) -> torch.Tensor:
-            used = torch.unique(index[train])  # only training images set the feature statistics
-            remap = torch.full((len(images),), -1, dtype=torch.long)
-            remap[used] = torch.arange(len(used))
-            fit_head(model, raw[used], remap[index[train]], labels[train], l2=args.l2)
-            with torch.no_grad():
-                return model.score_features(model.standardise(raw))
+            return fit_head_and_score(model, raw, index[train], labels[train], l2=args.l2)
 
         rows[f"{name} (frozen)"] = cv(learned)
         rows[f"{name} (frozen)"]["feature_dim"] = model.feature_dim

@@ -40,7 +40,7 @@ from hpgs_ns.atomic_write import write_text_atomic  # noqa: E402
 from hpgs_ns.preference.evaluate import index_pairs, pair_accuracy_from_scores, raw_features_of  # noqa: E402
 from hpgs_ns.preference.model import PreferenceModel  # noqa: E402
 from hpgs_ns.preference.pairs import read_usable_pairs  # noqa: E402
-from hpgs_ns.preference.train import fit_head  # noqa: E402
+from hpgs_ns.preference.train import fit_head_and_score  # noqa: E402
 
 Render = Tuple[Path, int, str, float]  # (image, training step, view, LPIPS against its photo)
 
@@ -115,13 +115,7 @@ def main() -> None:
             per_scene = {}
             for held in names:
                 index, labels = as_index({s: train[(s, same)] for s in names if s != held})
-                used = torch.unique(index)  # only training renders set the feature statistics
-                remap = torch.full((len(paths),), -1, dtype=torch.long)
-                remap[used] = torch.arange(len(used))
-                model = models[backbone]
-                fit_head(model, features[backbone][used], remap[index], labels, l2=l2)
-                with torch.no_grad():
-                    scores = model.score_features(model.standardise(features[backbone]))
+                scores = fit_head_and_score(models[backbone], features[backbone], index, labels, l2=l2)
                 t_index, t_labels = as_index({held: test[held]})
                 per_scene[held] = pair_accuracy_from_scores(scores, t_index, t_labels)
             recipe = {"backbone": backbone, "l2": l2, "pairs": "same step" if same else "any two renders"}
@@ -134,7 +128,7 @@ def main() -> None:
     same = best["pairs"] == "same step"
     model = models[best["backbone"]]
     index, labels = as_index({s: train[(s, same)] for s in names})
-    fit_head(model, features[best["backbone"]], index, labels, l2=best["l2"])
+    fit_head_and_score(model, features[best["backbone"]], index, labels, l2=best["l2"])
     garden_pairs = read_usable_pairs([garden / "pairs.csv"])
     g_images, g_index, g_labels = index_pairs(garden_pairs)
     with torch.no_grad():

@@ -44,7 +44,7 @@ class CandidateLog:
 
     @torch.no_grad()
     def measure(self, record: Dict[str, Any]) -> Dict[str, Any]:
-        from hpgs_ns.metrics import lpips, psnr, ssim
+        from hpgs_ns.metrics import lpips, photo_rgb, psnr, ssim
 
         dm, model = self.rounds.datamanager, self.rounds.model
         chosen = list(record["chosen_indices"])
@@ -69,9 +69,7 @@ class CandidateLog:
         renders = model.render_views(cameras)
         oracle: Dict[str, List[float]] = {"psnr": [], "ssim": [], "lpips": []}
         for index, render in zip(context.candidates, renders):
-            photo = dm.cached_train[index]["image"].to(render.device)
-            photo = photo.float() / 255.0 if photo.dtype == torch.uint8 else photo.float()
-            photo = photo[..., :3]
+            photo = photo_rgb(dm.cached_train[index]["image"]).to(render.device)
             oracle["psnr"].append(psnr(render, photo))
             oracle["ssim"].append(ssim(render, photo))
             oracle["lpips"].append(lpips(render, photo))

@@ -100,7 +100,8 @@ class ActiveDatamanagerConfig(FullImageDatamanagerConfig):
     """Stop selecting once the next view's predicted test-PSNR gain (dB) is below this (`hpgs_ns.early_stop`;
     default: every round runs): views a scene does not need are not added."""
     gain_model: Optional[Path] = None
-    """The gain calibration for stop-when-gain-below (default: the one shipped, fitted on the benchmark suite)."""
+    """The gain calibration for stop-when-gain-below (`benchmarks/early_stop.py --write-model`; default:
+    hpgs_ns/assets/gain-model.json, not shipped yet, so pass one)."""
     log_candidate_scores: bool = False
     """After each round, log every built-in selector's score of every candidate and each candidate's render error
     against its withheld photo to candidate_scores.jsonl (analysis only: never read by the run, and its random

@@ -27,6 +27,12 @@ def _to_bchw(img: torch.Tensor) -> torch.Tensor:
     return img.permute(2, 0, 1)[None].float()
 
 
+def photo_rgb(image: torch.Tensor) -> torch.Tensor:
+    """A dataset image ([H, W, C], uint8 or float, RGB or RGBA) as float RGB in [0, 1], what renders are compared to."""
+    image = image.float() / 255.0 if image.dtype == torch.uint8 else image.float()
+    return image[..., :3]
+
+
 def psnr(img_a: torch.Tensor, img_b: torch.Tensor) -> float:
     """PSNR in dB of two [H, W, 3] images in [0, 1] (data range 1)."""
     from torchmetrics.functional.image import peak_signal_noise_ratio

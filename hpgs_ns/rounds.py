@@ -245,16 +245,14 @@ class SelectionRounds:
     @torch.no_grad()
     def test_psnr(self) -> float:
         """Mean PSNR over the test views with the current splat (eval mode)."""
-        from hpgs_ns.metrics import psnr
+        from hpgs_ns.metrics import photo_rgb, psnr
 
         model = self.model
         with model.eval_mode():
             values = []
             for camera, batch in self.datamanager.fixed_indices_eval_dataloader:
                 rgb = model.get_outputs_for_camera(camera)["rgb"].clamp(0, 1)
-                gt = batch["image"].float()
-                gt = gt / 255.0 if batch["image"].dtype == torch.uint8 else gt
-                values.append(psnr(rgb.cpu(), gt[..., :3].cpu()))
+                values.append(psnr(rgb.cpu(), photo_rgb(batch["image"]).cpu()))
             return float(np.mean(values)) if values else float("nan")
 
     # ---- the round log ---------------------------------------------------------------------------------------

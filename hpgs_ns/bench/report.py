@@ -456,12 +456,14 @@ def throughput_table(rows: List[dict]) -> str:
         return ""
     machine = lambda r: (short_device(r), str(r["sweep_id"]).rsplit("-", 1)[0])  # noqa: E731 (host of the sweep)
     spans: List[List[dict]] = []
+    end = 0.0  # when the last span's latest run ended
     for r in sorted(timed, key=lambda r: (machine(r), r["started_at"])):
-        last = spans[-1] if spans else None
-        if last and machine(last[0]) == machine(r) and r["started_at"] < max(x["started_at"] + x["wall_seconds"] for x in last):
-            last.append(r)
+        if spans and machine(spans[-1][0]) == machine(r) and r["started_at"] < end:
+            spans[-1].append(r)
         else:
             spans.append([r])
+            end = 0.0
+        end = max(end, r["started_at"] + r["wall_seconds"])
 
     def at_once(span: List[dict]) -> int:
         events = sorted([(r["started_at"], 1) for r in span] + [(r["started_at"] + r["wall_seconds"], -1) for r in span])

@@ -67,6 +67,18 @@ def fit_head(model: PreferenceModel, raw: torch.Tensor, index: torch.Tensor, lab
     return float(loss.detach())
 
 
+def fit_head_and_score(model: PreferenceModel, raw: torch.Tensor, index: torch.Tensor, labels: torch.Tensor,
+                       l2: float = 0.1) -> torch.Tensor:
+    """Fit the head on the pairs `index` ([P, 2] into `raw`, [N, F] features of every image) and return every
+    image's score ([N]). Only the images in those pairs set the feature statistics (held-out images stay unseen)."""
+    used = torch.unique(index)
+    remap = torch.full((len(raw),), -1, dtype=torch.long)
+    remap[used] = torch.arange(len(used))
+    fit_head(model, raw[used], remap[index], labels, l2=l2)
+    with torch.no_grad():
+        return model.score_features(model.standardise(raw.to(model.feature_mean.device))).cpu()
+
+
 def paired_augment(a: torch.Tensor, b: torch.Tensor, generator: torch.Generator,
                    min_scale: float = 0.7) -> Tuple[torch.Tensor, torch.Tensor]:
     """The same random horizontal flip and crop (relative box, side fraction in [min_scale, 1]) on both images.
