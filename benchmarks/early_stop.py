@@ -16,7 +16,7 @@ from pathlib import Path
 from hpgs_ns.bench.report import load_results
 from hpgs_ns.early_stop import early_stop_curve, fit_gain_model
 
-THRESHOLDS = (-0.5, -0.25, 0.0, 0.05, 0.1, 0.2, 0.3, 0.5, 1.0)
+THRESHOLDS = (-0.5, -0.25, 0.0, 0.05, 0.1, 0.15, 0.2, 0.25, 0.3, 0.5, 1.0)
 
 
 def main() -> None:

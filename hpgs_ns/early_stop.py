@@ -64,15 +64,21 @@ class GainModel:
 
 
 def view_gains(rows: Iterable[dict]) -> List[Dict[str, object]]:
-    """Per run with a matching `initial` reference (same scene, protocol and seed), both with their test PSNR at
-    the round steps: the run's views before each round and its cumulative gain G at each round step and at the
-    end (`G` lists one more value than `views`)."""
+    """Per run with a matching `initial` reference, both with their test PSNR at the round steps: the run's views
+    before each round and its cumulative gain G at each round step and at the end (`G` lists one more value than
+    `views`). The reference is of the same scene, protocol and seed, or else one of another seed that started from
+    the very same initial views (the FisherRF protocol's farthest-point start does not depend on the seed), so
+    one reference per scene serves every seed at the cost of training noise (~0.1 dB, README)."""
     rows = list(rows)
-    refs = {(r["scene"], r["protocol"], r["seed"]): r for r in rows
-            if r["selector"] == "initial" and r.get("psnr_at_round_steps")}
+    refs = [r for r in rows if r["selector"] == "initial" and r.get("psnr_at_round_steps")]
+    same_seed = {(r["scene"], r["protocol"], r["seed"]): r for r in refs}
+    same_views = {(r["scene"], r["protocol"], tuple(r["initial_views"])): r
+                  for r in sorted(refs, key=lambda r: -r["seed"]) if r.get("initial_views")}
     out = []
     for r in rows:
-        ref = refs.get((r["scene"], r["protocol"], r["seed"]))
+        ref = same_seed.get((r["scene"], r["protocol"], r["seed"]))
+        if ref is None and r.get("initial_views"):
+            ref = same_views.get((r["scene"], r["protocol"], tuple(r["initial_views"])))
         at = r.get("psnr_at_round_steps") or {}
         if r["selector"] in ("initial", "all") or ref is None or not r.get("psnr_per_round"):
             continue
@@ -98,7 +104,7 @@ def fit_gain_model(rows: Sequence[dict], exclude_scene: Optional[str] = None) ->
     data = [g for g in round_gains(rows) if g[0] != exclude_scene]
     if not data:
         raise ValueError("no rounds to fit on: runs need their test PSNR at every round step (eval-each-round) and an "
-                         "`initial` reference of the same scene, protocol and seed")
+                         "`initial` reference of the same scene and protocol (same seed, or the same initial views)")
 
     def fit(points: List[Tuple[str, str, int, float]]) -> Tuple[float, float]:
         x = np.array([[1.0, math.log(v)] for _, _, v, _ in points])

@@ -14,7 +14,7 @@ from hpgs_ns.early_stop import GainModel, early_stop_curve, fit_gain_model, roun
 from hpgs_ns.errors import UserError
 
 
-def runs(scene: str, a: float, b: float, seed: int = 0) -> list:
+def runs(scene: str, a: float, b: float, seed: int = 0, initial_views=None) -> list:
     """A selector run whose k-th view gains exactly a + b log(views), and its `initial` reference, which gains
     0.3 dB of training per round whatever the views (the confound the reference removes)."""
     steps = [400, 900, 1500, 2200]
@@ -24,7 +24,7 @@ def runs(scene: str, a: float, b: float, seed: int = 0) -> list:
     for k, s in enumerate(steps):
         sel[str(s)] = ref[str(s)] + g
         g += a + b * math.log(views[k])
-    base = {"scene": scene, "protocol": "fisherrf", "seed": seed}
+    base = {"scene": scene, "protocol": "fisherrf", "seed": seed, "initial_views": initial_views or [f"{seed}.jpg"]}
     return [
         {**base, "selector": "initial", "psnr_at_round_steps": ref, "test": {"psnr": 15.0 + 0.3 * 4}, "psnr_per_round": []},
         {**base, "selector": "fisher", "psnr_at_round_steps": sel, "test": {"psnr": 15.0 + 0.3 * 4 + g}, "num_views_final": 8,
@@ -38,6 +38,15 @@ def test_a_views_gain_is_measured_against_the_reference_at_the_same_steps():
     assert [(v, round(g, 9)) for _, _, v, g in gains] == [(v, round(1.0 - 0.4 * math.log(v), 9)) for v in (4, 5, 6, 7)]
     assert view_gains(rows)[0]["G"][0] == 0.0  # before the first round: the same views as the reference
     assert round_gains(runs("s", 1.0, -0.4)[1:]) == []  # no reference, no gain
+
+
+def test_a_reference_of_another_seed_serves_only_a_run_from_the_same_initial_views():
+    ref = runs("s", 1.0, -0.4, seed=0, initial_views=["a.jpg", "b.jpg"])[0]
+    same = runs("s", 1.0, -0.4, seed=1, initial_views=["a.jpg", "b.jpg"])[1]
+    other = runs("s", 1.0, -0.4, seed=2, initial_views=["a.jpg", "c.jpg"])[1]
+    gains = view_gains([ref, same, other])
+    assert [v["run"]["seed"] for v in gains] == [1]
+    assert gains[0]["G"][0] == 0.0
 
 
 def test_the_calibration_is_recovered_and_judged_leaving_one_scene_out(tmp_path):
