@@ -8,11 +8,16 @@ selectors' per-round z-scores, fitted to the oracle's z-scores by least squares 
 numbers reported for it are on the scene it never saw.
 
     python benchmarks/candidate_scores.py benchmarks/results/suite --out candidate_scores.json
+
+`--selectors farthest hpgs` restricts the combination to those scores and prints its weights fitted on every
+scene: the `blend` selector's defaults (hpgs_ns/selectors/blend.py) come from that line. `--subsets` also judges
+every subset of the logged scores leave one scene out.
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 from pathlib import Path
 from typing import Dict, List
@@ -51,23 +56,30 @@ def summarize(rounds: List[dict], selectors: List[str]) -> Dict[str, Dict[str, f
     return out
 
 
+def design(rounds: List[dict], selectors: List[str]):
+    """Per round: the selectors' z-scored scores [candidates, selectors] and the oracle LPIPS z-scored."""
+    x = [np.stack([zscore(np.nan_to_num(np.array(r["scores"][s]))) for s in selectors], 1) for r in rounds]
+    y = [zscore(np.array(r["oracle"]["lpips"])) for r in rounds]
+    return x, y
+
+
+def fit_weights(rounds: List[dict], selectors: List[str]) -> np.ndarray:
+    """Least squares of the oracle's z-scores on the selectors' z-scores, pooled over rounds."""
+    xs, ys = design(rounds, selectors)
+    w, *_ = np.linalg.lstsq(np.concatenate(xs), np.concatenate(ys), rcond=None)
+    return w
+
+
 def leave_one_scene_out(rounds: List[dict], selectors: List[str]) -> Dict[str, object]:
     """Weights fitted on the other scenes, judged on each held-out scene; mean over scenes."""
     scenes = sorted({r["scene"] for r in rounds})
     if len(scenes) < 2:
         return {}
-
-    def design(rs):
-        x = [np.stack([zscore(np.nan_to_num(np.array(r["scores"][s]))) for s in selectors], 1) for r in rs]
-        y = [zscore(np.array(r["oracle"]["lpips"])) for r in rs]
-        return x, y
-
     per_scene, weights = {}, {}
     for held in scenes:
-        xs, ys = design([r for r in rounds if r["scene"] != held])
-        w, *_ = np.linalg.lstsq(np.concatenate(xs), np.concatenate(ys), rcond=None)
+        w = fit_weights([r for r in rounds if r["scene"] != held], selectors)
         test = [r for r in rounds if r["scene"] == held]
-        q = [quality(x @ w, np.array(r["oracle"]["lpips"])) for x, r in zip(design(test)[0], test)]
+        q = [quality(x @ w, np.array(r["oracle"]["lpips"])) for x, r in zip(design(test, selectors)[0], test)]
         per_scene[held] = {k: float(np.nanmean([v[k] for v in q])) for k in ("spearman", "top_percentile")}
         weights[held] = dict(zip(selectors, map(float, w)))
     mean = {k: float(np.mean([v[k] for v in per_scene.values()])) for k in ("spearman", "top_percentile")}
@@ -78,20 +90,34 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("folder", type=Path)
     ap.add_argument("--out", type=Path, default=None)
+    ap.add_argument("--selectors", nargs="+", default=None, help="combine only these scores (default: all logged)")
+    ap.add_argument("--subsets", action="store_true", help="also judge every subset of the logged scores")
     args = ap.parse_args()
     rounds = load_rounds(args.folder)
     if not rounds:
         raise SystemExit(f"candidate_scores: no *-candidates.jsonl under {args.folder}; run hpgs bench --log-candidate-scores")
-    selectors = sorted(rounds[0]["scores"])
+    logged = sorted(rounds[0]["scores"])
+    selectors = args.selectors or logged
+    unknown = sorted(set(selectors) - set(logged))
+    if unknown:
+        raise SystemExit(f"candidate_scores: {', '.join(unknown)} not in the logs (logged: {', '.join(logged)})")
     result = {"rounds": len(rounds), "scenes": sorted({r["scene"] for r in rounds}),
-              "per_selector": summarize(rounds, selectors), "combination_loso": leave_one_scene_out(rounds, selectors)}
+              "per_selector": summarize(rounds, logged), "combined": selectors,
+              "combination_loso": leave_one_scene_out(rounds, selectors),
+              "weights_all_scenes": dict(zip(selectors, map(float, fit_weights(rounds, selectors))))}
+    if args.subsets:
+        result["subsets_loso"] = {"+".join(sub): leave_one_scene_out(rounds, list(sub))["held_out_mean"]
+                                  for k in range(1, len(logged) + 1) for sub in itertools.combinations(logged, k)}
     print(f"{len(rounds)} rounds, scenes {', '.join(result['scenes'])}")
     print("| scores | Spearman with oracle LPIPS | top pick's oracle percentile |\n|---|---|---|")
     for sel, q in result["per_selector"].items():
         print(f"| {sel} | {q['spearman']:.3f} | {q['top_percentile']:.3f} |")
     if result["combination_loso"]:
         q = result["combination_loso"]["held_out_mean"]
-        print(f"| linear combination (leave one scene out) | {q['spearman']:.3f} | {q['top_percentile']:.3f} |")
+        print(f"| {' + '.join(selectors)} combined (leave one scene out) | {q['spearman']:.3f} | {q['top_percentile']:.3f} |")
+    for name, q in result.get("subsets_loso", {}).items():
+        print(f"| subset {name} (leave one scene out) | {q['spearman']:.3f} | {q['top_percentile']:.3f} |")
+    print("weights fitted on every scene: " + ", ".join(f"{k} {v:.3f}" for k, v in result["weights_all_scenes"].items()))
     if args.out:
         args.out.write_text(json.dumps(result, indent=1) + "\n")
 

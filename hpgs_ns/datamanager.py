@@ -17,7 +17,7 @@ Its config also carries the rounds' and the selectors' options (`--pipeline.data
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import MISSING, dataclass, field, fields
 from pathlib import Path
 from typing import Any, Dict, List, Literal, Optional, Sequence, Tuple, Type
 
@@ -29,6 +29,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from hpgs_ns.dataparser import DataParserUnion, MipNerf360DataParserConfig, SceneDataError, view_name
 from hpgs_ns.errors import UserError
 from hpgs_ns.selectors import (
+    BlendSelectorConfig,
     CondorcetSelectorConfig,
     FarthestSelectorConfig,
     FisherSelectorConfig,
@@ -91,6 +92,8 @@ class ActiveDatamanagerConfig(FullImageDatamanagerConfig):
     """Options of the `hpgs` selector (the paper's method)."""
     condorcet: CondorcetSelectorConfig = field(default_factory=CondorcetSelectorConfig)
     """Options of the `condorcet` selector (the paper's ablation)."""
+    blend: BlendSelectorConfig = field(default_factory=BlendSelectorConfig)
+    """Options of the `blend` selector (farthest + hpgs, weights fitted on candidate logs)."""
     strict_init: bool = False
     """Keep only the COLMAP seed points whose track includes at least two initial views, so withheld and test
     views leak no geometry into the starting splat."""
@@ -117,6 +120,14 @@ class ActiveDatamanagerConfig(FullImageDatamanagerConfig):
     cleared, and learning rates and splatfacto's step-keyed schedule (densification, opacity reset, SH degree,
     resolution) restart at the round's step. The trainer's step keeps counting; the run ends at
     max-num-iterations."""
+
+    def __setstate__(self, state: dict) -> None:
+        # A config.yml saved before an option group existed (PyYAML restores attributes, not __init__) gets that
+        # group's defaults; plain-valued options already fall back to their class defaults.
+        self.__dict__.update(state)
+        for f in fields(self):
+            if f.name not in self.__dict__ and f.default_factory is not MISSING:
+                setattr(self, f.name, f.default_factory())
 
     def selector_config(self) -> SelectorConfig:
         """The options of the chosen selector: its group above for a built-in one, else the registry's."""

@@ -285,3 +285,30 @@ def test_per_scene_preference_models_are_used_and_checked(tmp_path):
     (models / "garden.pt").unlink()
     with pytest.raises(SystemExit, match="no preference model .*garden.pt for scene 'garden'; train one without that scene"):
         train_args(bench, hpgs_job, tmp_path)
+
+
+def test_per_scene_blend_weights_are_passed_and_recorded(tmp_path):
+    from hpgs_ns.bench.runs import train_args
+
+    scenes = [tmp_path / "garden", tmp_path / "other"]
+    for scene in scenes:
+        (scene / "sparse" / "0").mkdir(parents=True)
+    table = tmp_path / "weights.json"
+    table.write_text(json.dumps({"combination_loso": {"weights": {"garden": {"farthest": 0.3, "hpgs": 0.6}}}}))
+    bench = Bench(scenes=scenes, out=tmp_path / "out", selectors=["blend", "farthest"], seeds=[0], references=False,
+                  blend_weights=table)
+    jobs = {(j.scene.name, j.name): j for j in bench.jobs()}
+    args = train_args(bench, jobs["garden", "blend"], tmp_path)
+    assert args[args.index("--pipeline.datamanager.blend.farthest-weight") + 1] == "0.3"
+    assert args[args.index("--pipeline.datamanager.blend.hpgs-weight") + 1] == "0.6"
+    assert run_settings(bench, jobs["garden", "blend"])["selector_options"]["hpgs_weight"] == 0.6
+    # A scene the table does not name keeps the shipped weights; other selectors get no blend flags.
+    assert "--pipeline.datamanager.blend.hpgs-weight" not in train_args(bench, jobs["other", "blend"], tmp_path)
+    assert run_settings(bench, jobs["other", "blend"])["selector_options"]["hpgs_weight"] == 0.432
+    assert not any(a.startswith("--pipeline.datamanager.blend") for a in train_args(bench, jobs["garden", "farthest"], tmp_path))
+    table.write_text(json.dumps({"combination_loso": {"weights": {"garden": {"farthest": 0.3, "fisher": 0.6}}}}))
+    with pytest.raises(SystemExit, match="combines farthest, fisher; blend takes farthest and hpgs"):
+        train_args(bench, jobs["garden", "blend"], tmp_path)
+    table.write_text("{}")
+    with pytest.raises(SystemExit, match="is not a candidate_scores.py JSON"):
+        train_args(bench, jobs["garden", "blend"], tmp_path)

@@ -92,3 +92,56 @@ def test_check_selection_rejects_repeats_non_candidates_and_nan():
         check_selection(Selection([1, 2], {1: float("nan")}), ctx)
     with pytest.raises(SelectionError, match="expected 2"):
         check_selection(Selection([1]), ctx)
+
+
+class FixedFeatures:
+    """Stands in for blend's hpgs part: a fixed feature per view, no rendering."""
+
+    def __init__(self, features: torch.Tensor) -> None:
+        self.table = features
+
+    def features(self, context, views, work=None):
+        return self.table[list(views)]
+
+
+def blend(farthest_weight: float, hpgs_weight: float, features: torch.Tensor):
+    from hpgs_ns.selectors.blend import BlendSelector, BlendSelectorConfig
+
+    sel = BlendSelector.__new__(BlendSelector)  # skip loading the shipped preference model: features are fixed here
+    sel.config = BlendSelectorConfig(farthest_weight=farthest_weight, hpgs_weight=hpgs_weight)
+    sel.hpgs = FixedFeatures(features)
+    return sel
+
+
+def test_blend_is_the_weighted_sum_of_z_scored_coverage_and_feature_distance():
+    from hpgs_ns.selectors.farthest import nearest_centre_distance
+
+    # Active views look alike (feature e0); candidate 3 looks most different, 6 is farthest away, and 5 is second
+    # in both: the compromise.
+    feats = torch.zeros(12, 3)
+    feats[:, 0] = 1.0
+    feats[3] = torch.tensor([0.0, 1.0, 0.0])
+    feats[5] = torch.tensor([0.2, 0.98, 0.0])
+    ctx = context(active=[0, 1, 11], candidates=range(2, 11))
+    assert blend(1.0, 0.0, feats).select(ctx).indices == FarthestSelectorConfig().setup().select(ctx).indices == [6]
+    assert blend(0.0, 1.0, feats).select(ctx).indices == [3]
+    # Equal weights: by hand, z(coverage) + z(feature distance) over the nine candidates.
+    cand = list(range(2, 11))
+    cov = nearest_centre_distance(ctx.cameras, cand, [0, 1, 11]).numpy()
+    app = cosine_distance_to_set(feats[cand], feats[[0, 1, 11]]).numpy()
+    total = (cov - cov.mean()) / cov.std() + (app - app.mean()) / app.std()
+    selection = blend(1.0, 1.0, feats).select(ctx)
+    assert selection.indices == [cand[int(total.argmax())]] == [5]
+    assert [selection.scores[c] for c in cand] == pytest.approx(list(total))
+
+
+def test_blend_batches_greedily_and_rejects_zero_weights():
+    from hpgs_ns.selectors.blend import BlendSelectorConfig
+
+    feats = torch.eye(12)
+    ctx = context(active=[0, 1, 11], candidates=range(2, 11), k=3)
+    picked = blend(1.0, 0.0, feats).select(ctx).indices
+    assert picked == FarthestSelectorConfig().setup().select(ctx).indices[:1] + picked[1:] and len(set(picked)) == 3
+    assert picked[1] in (3, 4, 8, 9)  # the first pick joined the active side
+    with pytest.raises(SelectionError, match="blend: farthest-weight and hpgs-weight are both 0"):
+        BlendSelectorConfig(farthest_weight=0.0, hpgs_weight=0.0).setup()

@@ -176,3 +176,20 @@ def test_fisher_probe_ranking_matches_exact_at_default_k(one_sided):
     exact = [scores["exact"][c] for c in candidates]
     probe = [scores["probe"][c] for c in candidates]
     assert spearman(exact, probe) >= 0.9, (exact, probe)
+
+
+def test_blend_scores_are_farthest_and_hpgs_scores_combined_through_ns_train_options(one_sided):
+    from hpgs_ns.selectors.blend import BlendSelectorConfig
+
+    trainer, az = one_sided
+    _, far = pick(trainer, FarthestSelectorConfig(), "farthest")
+    _, pref = pick(trainer, HpgsSelectorConfig(), "hpgs")
+    names, selection = pick(trainer, BlendSelectorConfig(farthest_weight=2.0, hpgs_weight=1.0), "blend")
+    z = lambda s: (s - s.mean()) / s.std(unbiased=False)  # noqa: E731
+    cand = sorted(selection.scores)
+    expected = 2.0 * z(torch.tensor([far.scores[c] for c in cand], dtype=torch.float64)) + z(
+        torch.tensor([pref.scores[c] for c in cand], dtype=torch.float64))
+    assert [selection.scores[c] for c in cand] == pytest.approx(expected.tolist(), abs=1e-6)
+    assert names == [trainer.pipeline.datamanager.image_names[cand[int(expected.argmax())]]]
+    assert_unseen_side(names, az)  # coverage weighs double here
+    assert type(trainer.pipeline.datamanager.config.blend) is BlendSelectorConfig  # an ns-train option group

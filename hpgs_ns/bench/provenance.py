@@ -33,6 +33,7 @@ CODE_FILES = (
 SELECTOR_FILES = {
     "hpgs": ("selectors/preference_features.py", "preference/model.py"),
     "condorcet": ("selectors/preference_features.py", "preference/model.py"),
+    "blend": ("selectors/preference_features.py", "preference/model.py", "selectors/farthest.py", "selectors/hpgs.py"),
 }
 # Everything else: cannot change a run's numbers.
 NOT_CODE_FILES = (

@@ -41,7 +41,7 @@ from hpgs_ns.early_stop import DEFAULT_GAIN_MODEL
 from hpgs_ns.ns_train import ns_train_command
 
 CONSOLE = Console(stderr=True)
-PREFERENCE_SELECTORS = ("hpgs", "condorcet")  # the selectors that score with a preference model
+PREFERENCE_SELECTORS = ("hpgs", "condorcet", "blend")  # the selectors that score with a preference model
 
 
 @dataclass
@@ -94,6 +94,10 @@ class Bench:
     preference_models: Optional[Path] = None
     """A folder of per-scene preference models, `<scene>.pt`, each trained without that scene (leave one scene out):
     `hpgs` and `condorcet` runs of a scene use its model, so no run scores views with a model that saw the scene."""
+    blend_weights: Optional[Path] = None
+    """Per-scene weights of the `blend` selector, each fitted without that scene: the JSON of
+    `benchmarks/candidate_scores.py --selectors farthest hpgs --out FILE` (its `combination_loso.weights`). Scenes
+    it does not name use the shipped weights, which were fitted on the logged scenes only."""
     stop_when_gain_below: Optional[float] = None
     """Stop each run's selection once the next view is predicted to gain less than this many dB (`early_stop`);
     results go under `<protocol>-stop<X>`."""
@@ -277,6 +281,8 @@ def train_args(bench: Bench, job: Job, run_root: Path) -> List[str]:
     model = scene_preference_model(bench, job)
     if model is not None:
         datamanager[f"{name}.model"] = model
+    for option, value in scene_blend_weights(bench, job).items():
+        datamanager[f"blend.{option}"] = value
     return ns_train_command(
         job.scene.path, run_root, job.scene.name, job.run_folder(run_root).name, protocol.steps,
         # ns-eval's JSON, written by the training process (hpgs_ns/trainer.py): no second start-up per run
@@ -293,6 +299,8 @@ def run_settings(bench: Bench, job: Job) -> dict:
     selector = None if job.name in REFERENCES else job.name
     model = scene_preference_model(bench, job)
     own = [f"--pipeline.datamanager.{selector}.model", str(model)] if model is not None else []
+    for option, value in scene_blend_weights(bench, job).items():
+        own += [f"--pipeline.datamanager.blend.{option}", str(value)]
     options = provenance.selector_options(selector, shlex.split(bench.extra_args) + own) if selector else None
     return {
         "steps": job.protocol.steps,
@@ -318,6 +326,24 @@ def scene_preference_model(bench: Bench, job: Job) -> Optional[Path]:
         raise SystemExit(f"hpgs bench: no preference model {path} for scene {job.scene.name!r}; train one without that "
                          "scene (leave one scene out) or drop --preference-models")
     return path
+
+
+def scene_blend_weights(bench: Bench, job: Job) -> Dict[str, float]:
+    """`blend`'s weights for this scene from --blend-weights, as option names (empty: the shipped weights)."""
+    if bench.blend_weights is None or job.name != "blend":
+        return {}
+    try:
+        table = json.loads(Path(bench.blend_weights).read_text())["combination_loso"]["weights"]
+    except (OSError, ValueError, KeyError, TypeError) as err:
+        raise SystemExit(f"hpgs bench: --blend-weights {bench.blend_weights} is not a candidate_scores.py JSON with "
+                         f"combination_loso.weights ({err}); write one with benchmarks/candidate_scores.py --out") from None
+    weights = table.get(job.scene.name)
+    if weights is None:
+        return {}
+    if set(weights) != {"farthest", "hpgs"}:
+        raise SystemExit(f"hpgs bench: --blend-weights {bench.blend_weights} combines {', '.join(sorted(weights))}; "
+                         "blend takes farthest and hpgs (candidate_scores.py --selectors farthest hpgs)")
+    return {"farthest-weight": float(weights["farthest"]), "hpgs-weight": float(weights["hpgs"])}
 
 
 def gain_model_hash(bench: Bench) -> str:

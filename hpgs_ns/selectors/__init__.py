@@ -7,6 +7,7 @@ packages register through the `hpgs_ns.selectors` entry point group.
 from hpgs_ns.selectors.base import (
     Selection, SelectionContext, SelectionError, Selector, SelectorConfig, check_selection,
 )
+from hpgs_ns.selectors.blend import BlendSelectorConfig
 from hpgs_ns.selectors.condorcet import CondorcetSelectorConfig
 from hpgs_ns.selectors.farthest import FarthestSelectorConfig
 from hpgs_ns.selectors.fisher import FisherSelectorConfig
@@ -24,6 +25,7 @@ __all__ = [
     "FisherSelectorConfig",
     "HpgsSelectorConfig",
     "CondorcetSelectorConfig",
+    "BlendSelectorConfig",
     "Selection",
     "SelectionContext",
     "SelectionError",

@@ -33,7 +33,6 @@ class FarthestSelector:
 
     def select(self, context: SelectionContext) -> Selection:
         c2w = context.cameras.camera_to_worlds.double()
-        centres = c2w[:, :3, 3]
         # nerfstudio cameras look along -z of their camera-to-world rotation.
         directions = -c2w[:, :3, 2]
         chosen_side = list(context.active)
@@ -41,7 +40,7 @@ class FarthestSelector:
         picked, scores = [], {}
         for _ in range(context.num_to_pick):
             cand = torch.tensor(pool)
-            dist = torch.cdist(centres[cand], centres[chosen_side]).min(dim=1).values
+            dist = nearest_centre_distance(context.cameras, pool, chosen_side)
             cos = (directions[cand] @ directions[chosen_side].T).max(dim=1).values
             if not picked:
                 scores = {int(i): float(d) for i, d in zip(cand, dist)}
@@ -53,6 +52,12 @@ class FarthestSelector:
             chosen_side.append(best)
             pool.remove(best)
         return Selection(indices=picked, scores=scores)
+
+
+def nearest_centre_distance(cameras, views: Sequence[int], side: Sequence[int]) -> torch.Tensor:
+    """Distance from each of `views`' camera centres to the nearest centre of `side` -> [len(views)] (float64)."""
+    centres = cameras.camera_to_worlds[:, :3, 3].double()
+    return torch.cdist(centres[list(views)], centres[list(side)]).min(dim=1).values
 
 
 def farthest_point_order(points: torch.Tensor, k: int, start: int = 0, chosen: Sequence[int] = ()) -> List[int]:

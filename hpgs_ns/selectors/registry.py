@@ -18,6 +18,7 @@ from importlib.metadata import entry_points
 from typing import Dict, List, Type
 
 from hpgs_ns.selectors.base import SelectionError, SelectorConfig
+from hpgs_ns.selectors.blend import BlendSelectorConfig
 from hpgs_ns.selectors.condorcet import CondorcetSelectorConfig
 from hpgs_ns.selectors.farthest import FarthestSelectorConfig
 from hpgs_ns.selectors.fisher import FisherSelectorConfig
@@ -32,6 +33,7 @@ BUILTIN_SELECTORS: Dict[str, Type[SelectorConfig]] = {
     "fisher": FisherSelectorConfig,
     "hpgs": HpgsSelectorConfig,
     "condorcet": CondorcetSelectorConfig,
+    "blend": BlendSelectorConfig,
 }
 
 
