@@ -9,6 +9,10 @@ numbers reported for it are on the scene it never saw.
 
     python benchmarks/candidate_scores.py benchmarks/results/suite --out candidate_scores.json
 
+Is the oracle the right target? Where a logged run has its test PSNR at every round step and an `initial`
+reference (`hpgs_ns.early_stop.view_gains`), each round's chosen view is set against what that round gained in
+test PSNR (over the reference): the Spearman correlation of the pick's render-error percentile with the gain.
+
 `--selectors farthest hpgs` restricts the combination to those scores and prints its weights fitted on every
 scene: the `blend` selector's defaults (hpgs_ns/selectors/blend.py) come from that line. `--subsets` also judges
 every subset of the logged scores leave one scene out.
@@ -30,10 +34,38 @@ def load_rounds(folder: Path) -> List[dict]:
     rounds = []
     for path in sorted(folder.glob("*/*/*/*-candidates.jsonl")):
         scene = path.relative_to(folder).parts[0]
+        result = path.with_name(path.name.replace("-candidates.jsonl", ".json"))
         for line in path.read_text().splitlines():
             if line.strip():
-                rounds.append({**json.loads(line), "scene": scene})
+                rounds.append({**json.loads(line), "scene": scene, "result": str(result)})
     return rounds
+
+
+def oracle_vs_gain(rounds: List[dict], folder: Path) -> Dict[str, object]:
+    """Spearman, over rounds, of the chosen view's render-error percentile with the round's test-PSNR gain."""
+    from hpgs_ns.bench.report import load_results
+    from hpgs_ns.early_stop import view_gains
+
+    gains = {}
+    for v in view_gains(load_results(folder)):
+        steps = [p["step"] for p in v["run"]["psnr_per_round"]]
+        key = (v["scene"], v["selector"], v["run"]["seed"], v["run"].get("repeat", 0))
+        for k, step in enumerate(steps[: len(v["G"]) - 1]):
+            gains[key + (step,)] = v["G"][k + 1] - v["G"][k]
+    pairs: Dict[str, List] = {}
+    for r in rounds:
+        seed = json.loads(Path(r["result"]).read_text())["seed"] if Path(r["result"]).is_file() else None
+        gain = gains.get((r["scene"], r["selector"], seed, 0, r["step"]))
+        if gain is None or not r["chosen"]:
+            continue
+        oracle = np.array(r["oracle"]["lpips"])
+        chosen = oracle[r["candidates"].index(r["chosen"][0])]
+        pairs.setdefault(r["scene"], []).append((float((oracle < chosen).mean()), gain))
+    every = [p for ps in pairs.values() for p in ps]
+    if len(every) < 3:
+        return {}
+    rho = lambda ps: float(spearmanr([a for a, _ in ps], [b for _, b in ps]).statistic)  # noqa: E731
+    return {"rounds": len(every), "spearman": rho(every), "per_scene": {s: rho(ps) for s, ps in pairs.items()}}
 
 
 def zscore(x: np.ndarray) -> np.ndarray:
@@ -105,6 +137,7 @@ def main() -> None:
               "per_selector": summarize(rounds, logged), "combined": selectors,
               "combination_loso": leave_one_scene_out(rounds, selectors),
               "weights_all_scenes": dict(zip(selectors, map(float, fit_weights(rounds, selectors))))}
+    result["oracle_vs_gain"] = oracle_vs_gain(rounds, args.folder)
     if args.subsets:
         result["subsets_loso"] = {"+".join(sub): leave_one_scene_out(rounds, list(sub))["held_out_mean"]
                                   for k in range(1, len(logged) + 1) for sub in itertools.combinations(logged, k)}
@@ -117,6 +150,10 @@ def main() -> None:
         print(f"| {' + '.join(selectors)} combined (leave one scene out) | {q['spearman']:.3f} | {q['top_percentile']:.3f} |")
     for name, q in result.get("subsets_loso", {}).items():
         print(f"| subset {name} (leave one scene out) | {q['spearman']:.3f} | {q['top_percentile']:.3f} |")
+    if result["oracle_vs_gain"]:
+        q = result["oracle_vs_gain"]
+        print(f"chosen view's render-error percentile vs the round's test-PSNR gain: Spearman {q['spearman']:.3f} over "
+              f"{q['rounds']} rounds (" + ", ".join(f"{s} {v:.2f}" for s, v in q["per_scene"].items()) + ")")
     print("weights fitted on every scene: " + ", ".join(f"{k} {v:.3f}" for k, v in result["weights_all_scenes"].items()))
     if args.out:
         args.out.write_text(json.dumps(result, indent=1) + "\n")

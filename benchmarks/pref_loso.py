@@ -4,8 +4,10 @@ score the HP-GS human labels of garden once.
 Input: `hpgs collect` folders of several scenes (renders/ and renders.csv: each render's PSNR/SSIM/LPIPS against
 its photo). Every render pair of a scene gets an oracle label from LPIPS (the one with the higher LPIPS is
 worse), so no person and no garden label is involved. For each recipe (backbone, L2 penalty on the head, which
-pairs train it) and each scene S, a head is fitted on the other scenes' pairs and scored on S's pairs; the recipe
-with the best mean over scenes wins. Only then is the winner, trained on every oracle scene, scored on garden's
+pairs train it, the least LPIPS difference a training pair must have) and each scene S, a head is fitted on the
+other scenes' pairs and scored on S's pairs; the recipe with the best mean over scenes wins. Held-out pairs are
+of two kinds: any two renders, and two views at the same training step (what a selector compares, and what the
+garden labels are: renders of one partially trained splat); `--choose-by` says which one picks the recipe. Only then is the winner, trained on every oracle scene, scored on garden's
 human labels (never seen in training or in the choice). With --write-model it is saved with that record.
 
     hpgs collect --data SCENE --out pref/SCENE ...           # for each scene (GPU, or CPU at small size)
@@ -50,9 +52,10 @@ def read_renders(folder: Path) -> List[Render]:
         return [(folder / r["image"], int(r["step"]), r["view"], float(r["lpips"])) for r in csv.DictReader(f)]
 
 
-def oracle_pairs(renders: List[Render], n: int, same_step: bool, seed: int) -> List[Tuple[int, int, int]]:
+def oracle_pairs(renders: List[Render], n: int, same_step: bool, seed: int, margin: float = 0.0) -> List[Tuple[int, int, int]]:
     """n random pairs (i, j, label: 1 = i worse by LPIPS); `same_step`: both renders from one training step
-    (different views at one moment, as a selector compares candidates). Ties are dropped."""
+    (different views at one moment, as a selector compares candidates). Pairs whose LPIPS differ by no more than
+    `margin` (ties, and near-ties whose oracle label is a coin flip) are dropped."""
     rng = random.Random(seed)
     if same_step:
         by_step: Dict[int, List[int]] = {}
@@ -63,7 +66,7 @@ def oracle_pairs(renders: List[Render], n: int, same_step: bool, seed: int) -> L
         pool = list(itertools.combinations(range(len(renders)), 2))
     out = []
     for i, j in rng.sample(pool, min(n, len(pool))):
-        if renders[i][3] != renders[j][3]:
+        if abs(renders[i][3] - renders[j][3]) > margin:
             out.append((i, j, int(renders[i][3] > renders[j][3])))
     return out
 
@@ -73,7 +76,11 @@ def main() -> None:
     ap.add_argument("scenes", type=Path, nargs="+", help="`hpgs collect` output folders, one per scene")
     ap.add_argument("--garden", type=Path, default=None, help="hpgs-pairs-garden folder (default: ../shared/data)")
     ap.add_argument("--backbones", nargs="*", default=["alexnet", "vgg16"])
-    ap.add_argument("--l2", type=float, nargs="*", default=[0.01, 0.1, 1.0])
+    ap.add_argument("--l2", type=float, nargs="*", default=[0.1, 1.0, 10.0])
+    ap.add_argument("--margins", type=float, nargs="*", default=[0.0, 0.02, 0.05],
+                    help="least LPIPS difference of a training pair")
+    ap.add_argument("--choose-by", choices=("same-step", "any"), default="same-step",
+                    help="held-out pairs that pick the recipe (same-step: as a selector and the garden labels compare)")
     ap.add_argument("--train-pairs", type=int, default=3000, help="oracle pairs per training scene")
     ap.add_argument("--test-pairs", type=int, default=2000, help="oracle pairs per held-out scene (any two renders)")
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "pref_loso.json")
@@ -95,9 +102,10 @@ def main() -> None:
         start[name] = offset
         offset += len(renders[name])
     paths = [r[0] for name in names for r in renders[name]]
-    test = {name: oracle_pairs(renders[name], args.test_pairs, same_step=False, seed=1) for name in names}
-    train = {(name, same): oracle_pairs(renders[name], args.train_pairs, same_step=same, seed=0)
-             for name in names for same in (False, True)}
+    tests = {kind: {name: oracle_pairs(renders[name], args.test_pairs, same_step=kind == "same-step", seed=1)
+                    for name in names} for kind in ("any", "same-step")}
+    train = {(name, same, m): oracle_pairs(renders[name], args.train_pairs, same_step=same, seed=0, margin=m)
+             for name in names for same in (False, True) for m in args.margins}
     print(f"{len(names)} scenes, {len(paths)} renders: " + ", ".join(f"{n} {len(renders[n])}" for n in names))
 
     def as_index(pairs_by_scene: Dict[str, List[Tuple[int, int, int]]]) -> Tuple[torch.Tensor, torch.Tensor]:
@@ -111,23 +119,27 @@ def main() -> None:
         models[backbone] = PreferenceModel(backbone, pretrained=True).eval()
         features[backbone] = raw_features_of(models[backbone], paths, batch_size=32)
         print(f"{backbone}: features of {len(paths)} renders in {time.time() - t0:.0f} s")
-        for l2, same in itertools.product(args.l2, (False, True)):
-            per_scene = {}
+        for l2, same, margin in itertools.product(args.l2, (False, True), args.margins):
+            per_kind: Dict[str, Dict[str, float]] = {"any": {}, "same-step": {}}
             for held in names:
-                index, labels = as_index({s: train[(s, same)] for s in names if s != held})
+                index, labels = as_index({s: train[(s, same, margin)] for s in names if s != held})
                 scores = fit_head_and_score(models[backbone], features[backbone], index, labels, l2=l2)
-                t_index, t_labels = as_index({held: test[held]})
-                per_scene[held] = pair_accuracy_from_scores(scores, t_index, t_labels)
-            recipe = {"backbone": backbone, "l2": l2, "pairs": "same step" if same else "any two renders"}
-            mean = statistics.mean(per_scene.values())
-            results.append({**recipe, "loso_mean": mean, "per_scene": per_scene})
-            print(f"  l2 {l2:g}, {recipe['pairs']}: leave-one-scene-out {mean:.3f} ("
-                  + ", ".join(f"{s} {a:.3f}" for s, a in per_scene.items()) + ")")
+                for kind in per_kind:
+                    t_index, t_labels = as_index({held: tests[kind][held]})
+                    per_kind[kind][held] = pair_accuracy_from_scores(scores, t_index, t_labels)
+            recipe = {"backbone": backbone, "l2": l2, "pairs": "same step" if same else "any two renders",
+                      "margin": margin}
+            means = {kind: statistics.mean(v.values()) for kind, v in per_kind.items()}
+            results.append({**recipe, "loso_mean": means[args.choose_by], "loso_mean_any": means["any"],
+                            "loso_mean_same_step": means["same-step"], "per_scene": per_kind[args.choose_by]})
+            print(f"  l2 {l2:g}, {recipe['pairs']}, margin {margin:g}: leave-one-scene-out any {means['any']:.3f}, "
+                  f"same step {means['same-step']:.3f} ("
+                  + ", ".join(f"{s} {a:.3f}" for s, a in per_kind[args.choose_by].items()) + ")")
 
     best = max(results, key=lambda r: r["loso_mean"])
     same = best["pairs"] == "same step"
     model = models[best["backbone"]]
-    index, labels = as_index({s: train[(s, same)] for s in names})
+    index, labels = as_index({s: train[(s, same, best["margin"])] for s in names})
     fit_head_and_score(model, features[best["backbone"]], index, labels, l2=best["l2"])
     garden_pairs = read_usable_pairs([garden / "pairs.csv"])
     g_images, g_index, g_labels = index_pairs(garden_pairs)
@@ -135,13 +147,15 @@ def main() -> None:
         g_scores = model.score_features(model.standardise(raw_features_of(model, g_images, batch_size=32)))
     garden_acc = pair_accuracy_from_scores(g_scores, g_index, g_labels)
     constant = float(g_labels.float().mean())
-    print(f"chosen: {best['backbone']}, l2 {best['l2']:g}, {best['pairs']} (leave-one-scene-out {best['loso_mean']:.3f}); "
+    print(f"chosen by {args.choose_by} pairs: {best['backbone']}, l2 {best['l2']:g}, {best['pairs']}, margin {best['margin']:g} "
+          f"(leave-one-scene-out {best['loso_mean']:.3f}); "
           f"garden human labels: {garden_acc:.3f} on {len(garden_pairs)} pairs (constant answer {constant:.3f})")
     record = {
-        "recipe": {k: best[k] for k in ("backbone", "l2", "pairs")},
+        "recipe": {k: best[k] for k in ("backbone", "l2", "pairs", "margin")},
+        "chosen_by": f"{args.choose_by} held-out pairs",
         "oracle": "LPIPS of each render against its photo (higher = worse)",
         "scenes": {n: {"renders": len(renders[n]), "train_pairs_per_policy": args.train_pairs,
-                       "test_pairs": len(test[n])} for n in names},
+                       "test_pairs": {kind: len(tests[kind][n]) for kind in tests}} for n in names},
         "leave_one_scene_out": results,
         "chosen_loso_mean": best["loso_mean"],
         "garden_human_accuracy": garden_acc,
