@@ -93,7 +93,8 @@ class Bench:
     error on resume, not skipped: pass another `--out`."""
     preference_models: Optional[Path] = None
     """A folder of per-scene preference models, `<scene>.pt`, each trained without that scene (leave one scene out):
-    `hpgs` and `condorcet` runs of a scene use its model, so no run scores views with a model that saw the scene."""
+    `hpgs`, `condorcet` and `blend` runs of a scene use its model, so no run scores views with a model that saw
+    the scene."""
     blend_weights: Optional[Path] = None
     """Per-scene weights of the `blend` selector, each fitted without that scene: the JSON of
     `benchmarks/candidate_scores.py --selectors farthest hpgs --out FILE` (its `combination_loso.weights`). Scenes
