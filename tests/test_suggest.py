@@ -58,6 +58,12 @@ def test_a_full_ring_leaves_no_orbit_pose_and_says_so(run, run_config):
     assert out["num"] == 2 and all(math.isfinite(s["score"]) for s in out["suggestions"])
 
 
+def test_blend_suggests_distinct_poses_with_finite_scores(run, run_config):
+    out = suggest(run, Suggest(run_config, num=2, selector="blend", candidates="sphere", count=32))
+    assert out["selector"] == "blend" and len({s["candidate"] for s in out["suggestions"]}) == 2
+    assert all(math.isfinite(s["score"]) for s in out["suggestions"])
+
+
 def test_a_camera_path_file_is_read_and_its_unusable_poses_dropped(run, run_config, tmp_path):
     dm = run.pipeline.datamanager
     lay = cand.layout(dm.train_dataset.cameras.camera_to_worlds)
