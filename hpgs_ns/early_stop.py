@@ -68,7 +68,7 @@ def view_gains(rows: Iterable[dict]) -> List[Dict[str, object]]:
     before each round and its cumulative gain G at each round step and at the end (`G` lists one more value than
     `views`). The reference is of the same scene, protocol and seed, or else one of another seed that started from
     the very same initial views (the FisherRF protocol's farthest-point start does not depend on the seed), so
-    one reference per scene serves every seed at the cost of training noise (~0.1 dB, README)."""
+    one reference per scene serves every seed at the cost of its training noise (README: ~0.1 dB, more on fox)."""
     rows = list(rows)
     refs = [r for r in rows if r["selector"] == "initial" and r.get("psnr_at_round_steps")]
     same_seed = {(r["scene"], r["protocol"], r["seed"]): r for r in refs}
