@@ -45,15 +45,36 @@ def training_cameras(scene: Scene):
     return [view_name(p, scene.path) for p in outputs.image_filenames], outputs.cameras
 
 
-def arc_blocks(cameras, blocks: int, arc_deg: float) -> List[List[int]]:
-    """Training views in each of `blocks` arcs of `arc_deg` degrees, evenly spaced in azimuth around the centre."""
+def capture_azimuths(cameras) -> torch.Tensor:
+    """Each training camera's azimuth (degrees) around the capture's centre and up axis."""
     lay = cand.layout(cameras.camera_to_worlds)
     u = lay.up
     a = torch.nn.functional.normalize(torch.linalg.cross(u, torch.tensor([1.0, 0, 0]) if abs(u[0]) < 0.9 else torch.tensor([0, 1.0, 0]), dim=0), dim=0)
     b = torch.linalg.cross(u, a, dim=0)
     rel = cameras.camera_to_worlds[:, :3, 3] - lay.centre
-    azimuth = torch.rad2deg(torch.atan2(rel @ b, rel @ a)) % 360
-    return [[i for i, z in enumerate(azimuth.tolist()) if (z - k * 360 / blocks) % 360 < arc_deg] for k in range(blocks)]
+    return torch.rad2deg(torch.atan2(rel @ b, rel @ a)) % 360
+
+
+def arc_blocks(cameras, blocks: int, arc_deg: float) -> List[List[int]]:
+    """Training views in each of `blocks` disjoint arcs (at most `arc_deg` wide) evenly spaced over the azimuths
+    the capture covers: all around for an orbit, the covered span for a partial one (a table-top phone capture
+    spans ~120 degrees; arcs spread over the full circle would miss it)."""
+    azimuth = capture_azimuths(cameras)
+    ordered = sorted(azimuth.tolist())
+    gaps = [((ordered[(k + 1) % len(ordered)] - z) % 360, k) for k, z in enumerate(ordered)]
+    widest, k = max(gaps)
+    # The span begins after the widest empty gap; half a photo spacing more at each end, so the first and last
+    # photos sit inside it (on a full orbit the span is then the whole circle).
+    spacing = sorted(g for g, _ in gaps)[len(gaps) // 2]
+    start = ordered[(k + 1) % len(ordered)] - spacing / 2
+    span = min(360.0, 360.0 - widest + spacing) if len(ordered) > 1 else 360.0
+    step = span / blocks
+    width = min(arc_deg, step)
+    out = []
+    for b in range(blocks):
+        low = start + b * step + (step - width) / 2
+        out.append([i for i, z in enumerate(azimuth.tolist()) if (z - low) % 360 < width])
+    return out
 
 
 def nearest_photos(suggested_c2w: Sequence, block_c2w: torch.Tensor, block: Sequence[int]) -> List[int]:

@@ -153,3 +153,30 @@ def test_arcs_and_the_photos_nearest_to_suggestions(run):
     d = (c2w[:, :3, 3] - c2w[2, :3, 3]).norm(dim=1)
     d[2] = float("inf")
     assert taken == [block[2], block[int(d.argmin())]]
+
+
+def test_arcs_spread_over_the_span_a_partial_capture_covers():
+    import math
+    import sys
+
+    from nerfstudio.cameras.cameras import Cameras
+
+    from conftest import REPO
+
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    from suggest_check import arc_blocks, capture_azimuths
+
+    # 30 cameras over 120 degrees of azimuth (a table-top phone capture), 0.5 above the object, looking at it.
+    c2w = []
+    for k in range(30):
+        a = math.radians(40 + 4 * k)
+        centre = torch.tensor([3 * math.cos(a), 3 * math.sin(a), 0.5])
+        back = centre / centre.norm()
+        right = torch.nn.functional.normalize(torch.linalg.cross(torch.tensor([0.0, 0.0, 1.0]), back), dim=0)
+        c2w.append(torch.stack([right, torch.linalg.cross(back, right), back, centre], dim=1))
+    cameras = Cameras(camera_to_worlds=torch.stack(c2w), fx=20.0, fy=20.0, cx=8.0, cy=8.0, width=16, height=16)
+    blocks = arc_blocks(cameras, 3, 60.0)
+    assert [len(b) for b in blocks] == [10, 10, 10]  # three 40-degree thirds of the span, none empty
+    assert blocks[0] == list(range(10)) or blocks[0] == list(range(20, 30))  # contiguous, from one end
+    assert not set(blocks[0]) & set(blocks[1]) and not set(blocks[1]) & set(blocks[2])
+    assert capture_azimuths(cameras).numel() == 30
