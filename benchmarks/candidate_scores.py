@@ -35,9 +35,11 @@ def load_rounds(folder: Path) -> List[dict]:
     for path in sorted(folder.glob("*/*/*/*-candidates.jsonl")):
         scene = path.relative_to(folder).parts[0]
         result = path.with_name(path.name.replace("-candidates.jsonl", ".json"))
+        run = json.loads(result.read_text()) if result.is_file() else {}  # a run killed mid-way has no result
+        which = {"scene": scene, "seed": run.get("seed"), "repeat": run.get("repeat", 0)}
         for line in path.read_text().splitlines():
             if line.strip():
-                rounds.append({**json.loads(line), "scene": scene, "result": str(result)})
+                rounds.append({**json.loads(line), **which})
     return rounds
 
 
@@ -54,8 +56,7 @@ def oracle_vs_gain(rounds: List[dict], folder: Path) -> Dict[str, object]:
             gains[key + (step,)] = v["G"][k + 1] - v["G"][k]
     pairs: Dict[str, List] = {}
     for r in rounds:
-        seed = json.loads(Path(r["result"]).read_text())["seed"] if Path(r["result"]).is_file() else None
-        gain = gains.get((r["scene"], r["selector"], seed, 0, r["step"]))
+        gain = gains.get((r["scene"], r["selector"], r["seed"], r["repeat"], r["step"]))
         if gain is None or not r["chosen"]:
             continue
         oracle = np.array(r["oracle"]["lpips"])

@@ -7,8 +7,9 @@ worse), so no person and no garden label is involved. For each recipe (backbone,
 pairs train it, the least LPIPS difference a training pair must have) and each scene S, a head is fitted on the
 other scenes' pairs and scored on S's pairs; the recipe with the best mean over scenes wins. Held-out pairs are
 of two kinds: any two renders, and two views at the same training step (what a selector compares, and what the
-garden labels are: renders of one partially trained splat); `--choose-by` says which one picks the recipe. Only then is the winner, trained on every oracle scene, scored on garden's
-human labels (never seen in training or in the choice). With --write-model it is saved with that record.
+garden labels are: renders of one partially trained splat); `--choose-by` says which one picks the recipe.
+Only then is the winner, trained on every oracle scene, scored on garden's human labels (never seen in training
+or in the choice). With --write-model it is saved with that record.
 
     hpgs collect --data SCENE --out pref/SCENE ...           # for each scene (GPU, or CPU at small size)
     python benchmarks/pref_loso.py pref/juicebox pref/stitch ... --out benchmarks/results/pref_loso.json \\
@@ -82,7 +83,7 @@ def main() -> None:
     ap.add_argument("--choose-by", choices=("same-step", "any"), default="same-step",
                     help="held-out pairs that pick the recipe (same-step: as a selector and the garden labels compare)")
     ap.add_argument("--train-pairs", type=int, default=3000, help="oracle pairs per training scene")
-    ap.add_argument("--test-pairs", type=int, default=2000, help="oracle pairs per held-out scene (any two renders)")
+    ap.add_argument("--test-pairs", type=int, default=2000, help="oracle pairs per held-out scene, of each kind")
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "pref_loso.json")
     ap.add_argument("--write-model", type=Path, default=None)
     args = ap.parse_args()
