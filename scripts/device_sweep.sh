@@ -1,41 +1,65 @@
 #!/usr/bin/env bash
 # Run `hpgs bench` sweeps ON the GPU machine in the background, so they go on between device calls while the
-# machine stays held (30 min from its start), and hand back what has finished. Every call must carry .dev and the
-# .devdata/<folder> of the scenes its sweeps still read (scripts/device_suite_data.py): a path a call does not name
-# in its carry is gone on the machine afterwards. .dev and the tree are ~48 MB of the 64 MiB, so two scenes a call.
+# machine stays held (30 min from its start), and hand back what has finished. Every call must carry .dev; a call
+# carries the .devdata/<folder> of the scenes it adds (scripts/device_suite_data.py). A carried path is gone on
+# the machine after a call that does not name it, so each start copies .devdata into /tmp/devdata, which the sweeps
+# read: later calls carry other scenes (.dev and the tree leave ~13 MB of the 64 MiB for scenes per call).
 #   HPGS_GIT_COMMIT=<sha> bash scripts/device_sweep.sh start 'ARGS1' 'ARGS2' ...   # one `hpgs bench` per ARGS, in order
 #   HPGS_GIT_COMMIT=<sha> bash scripts/device_sweep.sh parallel 'ARGS1' 'ARGS2'    # the same, all at once (one GPU shared)
-#   bash scripts/device_sweep.sh collect SECONDS     # wait until the plan ends or SECONDS pass; results -> $OUT
-# Every sweep writes to /tmp/suite (seeded with benchmarks/results/suite, so finished runs are skipped) with
-# --data-root .devdata. `collect` packs every result JSON written since `start` into $OUT/results.tgz (the device
-# tool returns at most 8 files) and the log into $OUT/sweep.log; unpack with
+#   HPGS_GIT_COMMIT=<sha> bash scripts/device_sweep.sh then 'ARGS1' 'ARGS2'        # all at once, once the group before ends
+#   bash scripts/device_sweep.sh collect SECONDS     # wait until every group ends or SECONDS pass; results -> $OUT
+# Each start/parallel/then call adds a group (its own log, /tmp/sweep-N.log); groups started by `start` or
+# `parallel` begin at once beside running ones. Every sweep writes to /tmp/suite (seeded with
+# benchmarks/results/suite, so finished runs are skipped). `collect` packs every result JSON written since the
+# first group into $OUT/results.tgz (the device tool returns at most 8 files) and the logs into $OUT/sweep.log;
+# unpack with
 #   tar xzf /work/.device/<call>/results.tgz -C benchmarks/results/suite
 set -o pipefail
 cd "$(dirname "$0")/.."
 bench=/tmp/suite
+data=/tmp/devdata
 bench_one() {
   echo "=== start $(date +%s): $1"
   # shellcheck disable=SC2086  # ARGS is a list of words
-  python3 -m hpgs_ns.cli bench --data-root .devdata --out "$bench" $1 2>&1 | grep --line-buffered -E 'PSNR|rror|failed|runs to do|Traceback|hpgs bench:'
+  python3 -m hpgs_ns.cli bench --data-root "$data" --out "$bench" $1 2>&1 | grep --line-buffered -E 'PSNR|rror|failed|runs to do|Traceback|hpgs bench:'
   echo "=== end $(date +%s)"
 }
+device_env() {
+  # prelude once per machine: installing the wheels again under a running sweep would pull its modules away
+  if [ -f /tmp/site/.prelude-done ]; then
+    export PYTHONPATH=/tmp/site:$PWD PATH=/tmp/site/bin:$PATH TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=16 PYTHONUNBUFFERED=1
+    export TORCH_FORCE_NO_WEIGHTS_ONLY_LOAD=1
+    so=$(ls .dev/prebuilt/gsplat_cuda-*.so 2>/dev/null | head -1)
+    [ -n "$so" ] && export HPGS_GSPLAT_SO=$PWD/$so
+  else
+    source .dev/prelude.sh && touch /tmp/site/.prelude-done
+  fi
+  source scripts/device_env.sh
+}
 case $1 in
-start|parallel)
+start|parallel|then)
   mode=run
-  [ "$1" = parallel ] && mode=runpar
+  [ "$1" != start ] && mode=runpar
+  after=0
+  n=$(($(ls /tmp/plan-*.txt 2>/dev/null | wc -l) + 1))
+  [ "$1" = then ] && after=$((n - 1))
   shift
-  mkdir -p "$bench"
+  mkdir -p "$bench" "$data"
   cp -rn benchmarks/results/suite/. "$bench/" 2>/dev/null
-  printf '%s\n' "$@" > /tmp/plan.txt
+  [ -d .devdata ] && cp -rn .devdata/. "$data/"
+  [ -f /tmp/sweep.start ] || touch /tmp/sweep.start
+  printf '%s\n' "$@" > "/tmp/plan-$n.txt"
   # setsid: the sweep outlives this call (the device tool ends the call's own processes when it returns)
-  setsid nohup bash scripts/device_sweep.sh $mode /tmp/plan.txt > /tmp/sweep.log 2>&1 < /dev/null &
+  setsid nohup bash scripts/device_sweep.sh $mode "/tmp/plan-$n.txt" "$after" > "/tmp/sweep-$n.log" 2>&1 < /dev/null &
   sleep 2
-  echo "started: $(wc -l < /tmp/plan.txt) sweeps"
+  echo "group $n: $(wc -l < "/tmp/plan-$n.txt") sweeps$([ "$after" -gt 0 ] && echo ", after group $after"); scenes in $data: $(ls "$data" | tr '\n' ' ')"
   ;;
 run|runpar)
-  # prelude once: installing the wheels again under a running sweep would pull its modules away
-  source .dev/prelude.sh
-  source scripts/device_env.sh
+  if [ "$3" -gt 0 ]; then
+    echo "=== waiting for group $3 $(date +%s)"
+    until grep -q "plan finished" "/tmp/sweep-$3.log" 2>/dev/null; do sleep 5; done
+  fi
+  device_env
   while IFS= read -r args; do
     [ -z "$args" ] && continue
     if [ "$1" = runpar ]; then bench_one "$args" & else bench_one "$args"; fi
@@ -45,14 +69,15 @@ run|runpar)
   ;;
 collect)
   end=$(($(date +%s) + $2))
-  while [ "$(date +%s)" -lt "$end" ] && ! grep -q "plan finished" /tmp/sweep.log 2>/dev/null; do sleep 5; done
-  (cd "$bench" && find . \( -name 'seed*.json' -o -name 'seed*-candidates.jsonl' \) -newer /tmp/plan.txt -not -path './_*' | tar czf "$OUT/results.tgz" -T -)
-  cp /tmp/sweep.log "$OUT/sweep.log"
+  busy() { for log in /tmp/sweep-*.log; do grep -q "plan finished" "$log" || return 0; done; return 1; }
+  while [ "$(date +%s)" -lt "$end" ] && busy; do sleep 5; done
+  (cd "$bench" && find . \( -name 'seed*.json' -o -name 'seed*-candidates.jsonl' \) -newer /tmp/sweep.start -not -path './_*' | tar czf "$OUT/results.tgz" -T -)
+  for log in /tmp/sweep-*.log; do echo "##### $log"; cat "$log"; done > "$OUT/sweep.log"
   tar tzf "$OUT/results.tgz" | wc -l
-  tail -5 /tmp/sweep.log
+  tail -n 4 /tmp/sweep-*.log
   ;;
 *)
-  echo "usage: device_sweep.sh start ARGS... | collect SECONDS" >&2
+  echo "usage: device_sweep.sh start|parallel|then ARGS... | collect SECONDS" >&2
   exit 2
   ;;
 esac
