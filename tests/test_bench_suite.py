@@ -16,7 +16,7 @@ from hpgs_ns.bench.executors import ExecutorConfig, LocalExecutor, SlurmExecutor
 from hpgs_ns.bench.report import (
     comparison_plan, noise_table, paired_report, replace_section, throughput_table, write_report,
 )
-from hpgs_ns.bench.runs import Bench, run_settings
+from hpgs_ns.bench.runs import Bench, out_of_memory_hint, run_settings
 from hpgs_ns.bench.suites import Scene, SuiteError, load_suite, scene_from_folder
 
 # --- suites ------------------------------------------------------------------------------------------------
@@ -94,6 +94,14 @@ def test_without_a_gpu_runs_go_one_at_a_time(monkeypatch):
     done = list(LocalExecutor(ExecutorConfig()).map(lambda item, env: calls.append(env) or item, range(3)))
     assert [d.value for d in done] == [0, 1, 2] and calls == [{}, {}, {}]  # in-process, in order
     assert runs_per_device(ExecutorConfig()) == 1
+
+
+def test_runs_that_ran_out_of_gpu_memory_get_the_fix_named():
+    errors = ["training failed (...):\ntorch.OutOfMemoryError: CUDA out of memory. Tried to allocate 94.00 MiB.",
+              "training failed (...):\nValueError: no images", "RuntimeError: CUDA out of memory."]
+    hint = out_of_memory_hint(errors, 4)
+    assert hint.startswith("\n2 of them ran out of GPU memory") and "--runs-per-gpu (now 4;" in hint
+    assert out_of_memory_hint(errors[1:2], 4) == ""
 
 
 def test_slurm_jobs_carry_runs_per_gpu_runs_each(tmp_path):

@@ -497,6 +497,7 @@ def run_sweep(bench: Bench, jobs: Sequence[Job], config: ExecutorConfig) -> None
     sweep = {"id": f"{socket.gethostname()}-{int(time.time())}.{os.getpid()}", "runs_per_gpu": runs_per_device(config)}
     CONSOLE.print(f"hpgs bench: {len(jobs)} runs to do ({config.executor}, {sweep['runs_per_gpu']} per device)")
     failures: List[str] = []
+    errors: List[str] = []
     columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
     with Progress(*columns, console=CONSOLE) as progress:
         bar = progress.add_task("runs", total=len(jobs))
@@ -514,11 +515,22 @@ def run_sweep(bench: Bench, jobs: Sequence[Job], config: ExecutorConfig) -> None
                 )
             else:
                 failures.append(f"{job.label} (log: {value['log']})")
+                errors.append(value["error"] or "")
                 last = (value["error"] or "").strip().splitlines()
                 progress.console.print(f"[red]failed: {failures[-1]}: {last[-1] if last else ''}")
             progress.advance(bar)
     if failures:
         raise SystemExit(
             f"hpgs bench: {len(failures)} of {len(jobs)} runs failed (the others' results are saved; "
-            "re-run to retry only these):\n  " + "\n  ".join(failures)
+            "re-run to retry only these):\n  " + "\n  ".join(failures) + out_of_memory_hint(errors, sweep["runs_per_gpu"])
         )
+
+
+def out_of_memory_hint(errors: Sequence[str], runs_per_gpu: int) -> str:
+    """A closing line when runs died of GPU memory: the fix is fewer runs sharing a GPU (12 runs of ~100-view
+    scenes at once overflowed an 80 GB H100), not a bug in the run."""
+    n = sum("out of memory" in e.lower() or "OutOfMemoryError" in e for e in errors)
+    if not n:
+        return ""
+    return (f"\n{n} of them ran out of GPU memory: re-run with a lower --runs-per-gpu (now {runs_per_gpu}; "
+            "other processes on the same GPU count too)")
