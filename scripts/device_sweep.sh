@@ -4,6 +4,7 @@
 # carries the .devdata/<folder> of the scenes it adds (scripts/device_suite_data.py). A carried path is gone on
 # the machine after a call that does not name it, so each start copies .devdata into /tmp/devdata, which the sweeps
 # read: later calls carry other scenes (.dev and the tree leave ~13 MB of the 64 MiB for scenes per call).
+# Chain the calls back to back: a machine idle for 30 s is given back, and the sweeps running on it die with it.
 #   HPGS_GIT_COMMIT=<sha> bash scripts/device_sweep.sh start 'ARGS1' 'ARGS2' ...   # one `hpgs bench` per ARGS, in order
 #   HPGS_GIT_COMMIT=<sha> bash scripts/device_sweep.sh parallel 'ARGS1' 'ARGS2'    # the same, all at once (one GPU shared)
 #   HPGS_GIT_COMMIT=<sha> bash scripts/device_sweep.sh then 'ARGS1' 'ARGS2'        # all at once, once the group before ends
@@ -68,6 +69,10 @@ run|runpar)
   echo "=== plan finished $(date +%s)"
   ;;
 collect)
+  if ! ls /tmp/sweep-*.log > /dev/null 2>&1; then
+    echo "device_sweep.sh: no sweep on this machine (a fresh one: the machine that ran them was given back); start again" >&2
+    exit 1
+  fi
   end=$(($(date +%s) + $2))
   busy() { for log in /tmp/sweep-*.log; do grep -q "plan finished" "$log" || return 0; done; return 1; }
   while [ "$(date +%s)" -lt "$end" ] && busy; do sleep 5; done
