@@ -59,9 +59,8 @@ def oracle_vs_gain(rounds: List[dict], folder: Path) -> Dict[str, object]:
         gain = gains.get((r["scene"], r["selector"], r["seed"], r["repeat"], r["step"]))
         if gain is None or not r["chosen"]:
             continue
-        oracle = np.array(r["oracle"]["lpips"])
-        chosen = oracle[r["candidates"].index(r["chosen"][0])]
-        pairs.setdefault(r["scene"], []).append((float((oracle < chosen).mean()), gain))
+        chosen = error_percentile(np.array(r["oracle"]["lpips"]), r["candidates"].index(r["chosen"][0]))
+        pairs.setdefault(r["scene"], []).append((chosen, gain))
     every = [p for ps in pairs.values() for p in ps]
     if len(every) < 3:
         return {}
@@ -74,11 +73,15 @@ def zscore(x: np.ndarray) -> np.ndarray:
     return (x - x.mean()) / sd if sd > 0 else np.zeros_like(x)
 
 
+def error_percentile(oracle: np.ndarray, index: int) -> float:
+    """Share of the round's candidates rendered better than candidate `index` (1.0: it is the worst rendered)."""
+    return float((oracle < oracle[index]).mean())
+
+
 def quality(scores: np.ndarray, oracle: np.ndarray) -> Dict[str, float]:
     """Spearman with the oracle error and the oracle percentile of the top-scored candidate."""
     rho = spearmanr(scores, oracle).statistic if len(scores) > 2 and scores.std() > 0 else float("nan")
-    top = int(np.argmax(scores))
-    return {"spearman": float(rho), "top_percentile": float((oracle < oracle[top]).mean())}
+    return {"spearman": float(rho), "top_percentile": error_percentile(oracle, int(np.argmax(scores)))}
 
 
 def summarize(rounds: List[dict], selectors: List[str]) -> Dict[str, Dict[str, float]]:
