@@ -170,8 +170,19 @@ def main() -> None:
     ap.add_argument("--rasterizer", default="auto")
     ap.add_argument("--extra-args", default="")
     ap.add_argument("--parallel", type=int, default=4, help="final runs trained at once")
+    ap.add_argument("--only-blocks", type=int, nargs="+", default=None,
+                    help="run these arcs only (indices < --blocks): one process per arc runs the cells side by side")
+    ap.add_argument("--report-only", action="store_true", help="rebuild suggest_check.md from the JSONs under --out")
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/suggest"))
     args = ap.parse_args()
+    if args.report_only:
+        rows = [json.loads(p.read_text()) for p in sorted(args.out.glob("*/block*-seed*.json"))]
+        if not rows:
+            raise SystemExit(f"suggest_check: no block*-seed*.json under {args.out}/<scene>/; run the check first")
+        text = report(rows)
+        write_text_atomic(args.out / "suggest_check.md", text)
+        print(text)
+        return
     rows = []
     for scene in load_suite(args.suite, args.data_root, args.suite_scenes):
         if scene.smoke:
@@ -179,7 +190,7 @@ def main() -> None:
         names, cameras = training_cameras(scene)
         for seed in args.seeds:
             for k, block in enumerate(arc_blocks(cameras, args.blocks, args.arc)):
-                if len(block) < args.num:
+                if len(block) < args.num or (args.only_blocks is not None and k not in args.only_blocks):
                     continue
                 rows += check_block(scene, seed, k, block, names, cameras, args)
     text = report(rows)

@@ -8,6 +8,8 @@
 #   HPGS_GIT_COMMIT=<sha> bash scripts/device_sweep.sh start 'ARGS1' 'ARGS2' ...   # one `hpgs bench` per ARGS, in order
 #   HPGS_GIT_COMMIT=<sha> bash scripts/device_sweep.sh parallel 'ARGS1' 'ARGS2'    # the same, all at once (one GPU shared)
 #   HPGS_GIT_COMMIT=<sha> bash scripts/device_sweep.sh then 'ARGS1' 'ARGS2'        # all at once, once the group before ends
+#   bash scripts/device_sweep.sh commands 'CMD1' 'CMD2'    # whole command lines at once (device env set); write
+#                                                    # results under /tmp/extra, collected into $OUT/extra.tgz
 #   bash scripts/device_sweep.sh collect SECONDS     # wait until every group ends or SECONDS pass; results -> $OUT
 # Each start/parallel/then call adds a group (its own log, /tmp/sweep-N.log); groups started by `start` or
 # `parallel` begin at once beside running ones. Every sweep writes to /tmp/suite (seeded with
@@ -20,6 +22,9 @@ cd "$(dirname "$0")/.."
 bench=/tmp/suite
 data=/tmp/devdata
 bench_one() {
+  if [ -n "$HPGS_SWEEP_COMMANDS" ]; then  # `commands` groups: each line is a whole command, not hpgs bench ARGS
+    echo "=== start $(date +%s): $1"; bash -c "$1" 2>&1 | tail -n 40; echo "=== end $(date +%s)"; return
+  fi
   echo "=== start $(date +%s): $1"
   # shellcheck disable=SC2086  # ARGS is a list of words
   python3 -m hpgs_ns.cli bench --data-root "$data" --out "$bench" $1 2>&1 | grep --line-buffered -E 'PSNR|rror|failed|runs to do|Traceback|hpgs bench:'
@@ -38,9 +43,10 @@ device_env() {
   source scripts/device_env.sh
 }
 case $1 in
-start|parallel|then)
+start|parallel|then|commands)
   mode=run
   [ "$1" != start ] && mode=runpar
+  [ "$1" = commands ] && mode=runcmd
   after=0
   n=$(($(ls /tmp/plan-*.txt 2>/dev/null | wc -l) + 1))
   [ "$1" = then ] && after=$((n - 1))
@@ -54,6 +60,9 @@ start|parallel|then)
   setsid nohup bash scripts/device_sweep.sh $mode "/tmp/plan-$n.txt" "$after" > "/tmp/sweep-$n.log" 2>&1 < /dev/null &
   sleep 2
   echo "group $n: $(wc -l < "/tmp/plan-$n.txt") sweeps$([ "$after" -gt 0 ] && echo ", after group $after"); scenes in $data: $(ls "$data" | tr '\n' ' ')"
+  ;;
+runcmd)
+  HPGS_SWEEP_COMMANDS=1 exec bash scripts/device_sweep.sh runpar "$2" "$3"
   ;;
 run|runpar)
   if [ "$3" -gt 0 ]; then
@@ -77,12 +86,14 @@ collect)
   busy() { for log in /tmp/sweep-*.log; do grep -q "plan finished" "$log" || return 0; done; return 1; }
   while [ "$(date +%s)" -lt "$end" ] && busy; do sleep 5; done
   (cd "$bench" && find . \( -name 'seed*.json' -o -name 'seed*-candidates.jsonl' \) -newer /tmp/sweep.start -not -path './_*' | tar czf "$OUT/results.tgz" -T -)
+  # `commands` groups write their results under /tmp/extra (e.g. suggest_check.py --out /tmp/extra/suggest)
+  [ -d /tmp/extra ] && (cd /tmp/extra && find . -name '*.json' -not -path '*/_*' | tar czf "$OUT/extra.tgz" -T -)
   for log in /tmp/sweep-*.log; do echo "##### $log"; cat "$log"; done > "$OUT/sweep.log"
   tar tzf "$OUT/results.tgz" | wc -l
   tail -n 4 /tmp/sweep-*.log
   ;;
 *)
-  echo "usage: device_sweep.sh start|parallel|then ARGS... | collect SECONDS" >&2
+  echo "usage: device_sweep.sh start|parallel|then ARGS... | commands CMD... | collect SECONDS" >&2
   exit 2
   ;;
 esac
