@@ -2,7 +2,7 @@
 suggestions from the arc, retrain, and compare test PSNR with the same done for `farthest`'s and `random`'s poses.
 
 For each scene (of a suite), seed and block (an arc of the training cameras' azimuths around the capture's
-centre): a base run trains on every training view but the arc; `hpgs suggest` (in-process, on the base run)
+centre, and where the capture has a higher pass, the views above its widest gap in elevation): a base run trains on every training view but the arc; `hpgs suggest` (in-process, on the base run)
 proposes `--num` orbit poses per selector; each pose is matched to the nearest photo of the arc not yet taken; a
 run per selector then trains from scratch on every view but the arc plus its matched photos (same seed and steps).
 Runs are paired by (scene, block, seed); gains over `farthest` and `random` get the benchmark's intervals
@@ -77,6 +77,27 @@ def arc_blocks(cameras, blocks: int, arc_deg: float) -> List[List[int]]:
     return out
 
 
+def capture_elevations(cameras) -> torch.Tensor:
+    """Each training camera's elevation (degrees) above the plane through the capture's centre, normal to its up."""
+    lay = cand.layout(cameras.camera_to_worlds)
+    rel = cameras.camera_to_worlds[:, :3, 3] - lay.centre
+    height = rel @ lay.up
+    return torch.rad2deg(torch.atan2(height, (rel - height[:, None] * lay.up).norm(dim=1)))
+
+
+def height_band(cameras, min_gap_deg: float, min_views: int) -> List[int]:
+    """The training views above the widest gap in elevation (a second, higher pass of the capture), when that gap is
+    at least `min_gap_deg` wide and both sides keep `min_views` photos; otherwise none (one continuous band)."""
+    elevation = capture_elevations(cameras)
+    ordered = sorted(elevation.tolist())
+    if len(ordered) < 2 * min_views:
+        return []
+    gap, k = max((ordered[k + 1] - ordered[k], k) for k in range(min_views - 1, len(ordered) - min_views))
+    if gap < min_gap_deg:
+        return []
+    return [i for i, e in enumerate(elevation.tolist()) if e > ordered[k]]
+
+
 def nearest_photos(suggested_c2w: Sequence, block_c2w: torch.Tensor, block: Sequence[int]) -> List[int]:
     """For each suggestion in turn, the nearest photo of the block not matched yet (by camera centre)."""
     free = list(block)
@@ -111,7 +132,8 @@ def train(scene: Scene, out: Path, name: str, exclude: List[str], seed: int, arg
             "command": shlex.join(cmd)}
 
 
-def check_block(scene: Scene, seed: int, k: int, block: List[int], names: List[str], cameras, args) -> List[dict]:
+def check_block(scene: Scene, seed: int, k: int, block: List[int], names: List[str], cameras, args,
+                withheld_as: str = "arc") -> List[dict]:
     from hpgs_ns.suggest.command import Suggest, load_run, suggest
 
     out = args.out
@@ -131,12 +153,13 @@ def check_block(scene: Scene, seed: int, k: int, block: List[int], names: List[s
         taken = picks[selector]
         result = train(scene, out, f"{label}-{selector}", [names[i] for i in block if i not in taken], seed, args)
         return {"scene": scene.name, "protocol": "withheld-arc", "selector": selector, "seed": k * 1000 + seed,
-                "block": k, "block_views": len(block), "photos_taken": [names[i] for i in taken], **result}
+                "block": k, "withheld": withheld_as, "block_views": len(block), "photos_taken": [names[i] for i in taken],
+                **result}
 
     with ThreadPoolExecutor(args.parallel) as pool:
         rows = list(pool.map(final, args.selectors))
     rows.append({"scene": scene.name, "protocol": "withheld-arc", "selector": "none", "seed": k * 1000 + seed, "block": k,
-                 "block_views": len(block), "photos_taken": [], **base})
+                 "withheld": withheld_as, "block_views": len(block), "photos_taken": [], **base})
     for r in rows:
         write_json_atomic(out / scene.name / f"{label}-{r['selector']}.json", r)
     return rows
@@ -149,8 +172,21 @@ def report(rows: List[dict]) -> str:
     for b in ("farthest", "random"):
         pairs += [(s, b) for s in selectors if s != b and b in selectors and (b, s) not in pairs]
     comparisons = stats.compare(rows, "withheld-arc", pairs, metric="psnr", primary=[p for p in pairs if p[1] == "farthest"])
+    # What taking any of the arc's photos is worth: a separate family, so it does not dilute the one above.
+    gains = stats.compare(rows, "withheld-arc", [(s, "none") for s in selectors], metric="psnr", primary=[])
+    cells = sorted({(r["scene"], r["block"], r["seed"]) for r in rows})
+    psnr = {(r["scene"], r["block"], r["seed"], r["selector"]): r["test"]["psnr"] for r in rows}
+    views = {(r["scene"], r["block"], r["seed"]): r["block_views"] for r in rows}
+    kind = {(r["scene"], r["block"], r["seed"]): r.get("withheld", "arc") for r in rows}
+    head = ["scene", "withheld", "seed", "photos withheld", "none"] + selectors
+    table = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for c in cells:
+        vals = [f"{psnr[c + (s,)]:.2f}" if c + (s,) in psnr else "–" for s in ["none"] + selectors]
+        table.append(f"| {c[0]} | {kind[c]} {c[1]} | {c[2] % 1000} | {views[c]} | " + " | ".join(vals) + " |")
     lines = ["Test PSNR after adding the withheld photos nearest to each selector's suggestions (pairs: scene x block "
-             "x seed; intervals over scenes).", "", stats.comparison_table(comparisons)]
+             "x seed; intervals over scenes).", "", stats.comparison_table(comparisons), "",
+             "Gain over adding none of the withheld photos:", "", stats.comparison_table(gains), "",
+             "Test PSNR per cell (dB):", "", *table]
     return "\n".join(lines) + "\n"
 
 
@@ -170,8 +206,12 @@ def main() -> None:
     ap.add_argument("--rasterizer", default="auto")
     ap.add_argument("--extra-args", default="")
     ap.add_argument("--parallel", type=int, default=4, help="final runs trained at once")
+    ap.add_argument("--band-gap", type=float, default=10.0,
+                    help="also withhold the views above the widest gap in elevation when it is at least this wide "
+                         "(degrees; a capture with a higher pass); block index --blocks. 0: arcs only")
     ap.add_argument("--only-blocks", type=int, nargs="+", default=None,
-                    help="run these arcs only (indices < --blocks): one process per arc runs the cells side by side")
+                    help="run these blocks only (arcs 0..--blocks-1, the band --blocks): one process per block runs "
+                         "the cells side by side")
     ap.add_argument("--report-only", action="store_true", help="rebuild suggest_check.md from the JSONs under --out")
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/suggest"))
     args = ap.parse_args()
@@ -188,11 +228,17 @@ def main() -> None:
         if scene.smoke:
             continue
         names, cameras = training_cameras(scene)
+        blocks = [(block, "arc") for block in arc_blocks(cameras, args.blocks, args.arc)]
+        band = height_band(cameras, args.band_gap, args.num) if args.band_gap > 0 else []
+        blocks.append((band, "band"))
+        if not band:
+            print(f"suggest_check: {scene.name} has no separate height band (no gap of {args.band_gap} degrees in "
+                  "elevation): arcs only")
         for seed in args.seeds:
-            for k, block in enumerate(arc_blocks(cameras, args.blocks, args.arc)):
+            for k, (block, kind) in enumerate(blocks):
                 if len(block) < args.num or (args.only_blocks is not None and k not in args.only_blocks):
                     continue
-                rows += check_block(scene, seed, k, block, names, cameras, args)
+                rows += check_block(scene, seed, k, block, names, cameras, args, withheld_as=kind)
     text = report(rows)
     write_text_atomic(args.out / "suggest_check.md", text)
     print(text)

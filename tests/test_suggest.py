@@ -180,3 +180,34 @@ def test_arcs_spread_over_the_span_a_partial_capture_covers():
     assert blocks[0] == list(range(10)) or blocks[0] == list(range(20, 30))  # contiguous, from one end
     assert not set(blocks[0]) & set(blocks[1]) and not set(blocks[1]) & set(blocks[2])
     assert capture_azimuths(cameras).numel() == 30
+
+
+def test_a_higher_pass_is_withheld_as_a_band_and_one_continuous_band_is_not():
+    import sys
+
+    from nerfstudio.cameras.cameras import Cameras
+
+    from conftest import REPO
+
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    from suggest_check import capture_elevations, height_band
+
+    def ring(count: int, elevations) -> Cameras:
+        """`count` cameras at distance 3 looking at the origin, the k-th at azimuth 360k/count, elevation e_k."""
+        c2w = []
+        for k, e in zip(range(count), elevations):
+            a, e = math.radians(360 * k / count), math.radians(e)
+            centre = torch.tensor([3 * math.cos(a) * math.cos(e), 3 * math.sin(a) * math.cos(e), 3 * math.sin(e)])
+            back = centre / centre.norm()
+            right = torch.nn.functional.normalize(torch.linalg.cross(torch.tensor([0.0, 0.0, 1.0]), back), dim=0)
+            c2w.append(torch.stack([right, torch.linalg.cross(back, right), back, centre], dim=1))
+        return Cameras(camera_to_worlds=torch.stack(c2w), fx=20.0, fy=20.0, cx=8.0, cy=8.0, width=16, height=16)
+
+    # a low ring of 24 at 5 degrees and a higher pass of 12 at 40 (interleaved in capture order)
+    two = ring(36, [40.0 if k % 3 == 0 else 5.0 for k in range(36)])
+    assert height_band(two, 10.0, 5) == [k for k in range(36) if k % 3 == 0]
+    assert height_band(two, 40.0, 5) == []  # the gap (~35 degrees) is narrower than asked
+    # a spiral from 5 to 45 degrees: no gap of 10 degrees anywhere, so no band
+    spiral = ring(36, [5 + 40 * k / 35 for k in range(36)])
+    assert height_band(spiral, 10.0, 5) == []
+    assert capture_elevations(spiral).numel() == 36
