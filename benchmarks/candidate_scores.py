@@ -1,6 +1,6 @@
 """How well each selector's scores find the candidates the splat renders worst, from `--log-candidate-scores` logs.
 
-Reads every `*-candidates.jsonl` under a results folder (`hpgs bench --log-candidate-scores`): per round, each
+Reads every `*-candidates.jsonl.gz` (or `.jsonl`) under a results folder (`hpgs bench --log-candidate-scores`): per round, each
 built-in selector's score of every candidate and the candidate's render error against its withheld photo (the
 oracle). For each selector: the Spearman correlation of its scores with the oracle LPIPS (mean over rounds) and the
 oracle percentile of its top pick (1.0: it picked the worst-rendered candidate). Then a linear combination of the
@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import itertools
+import gzip
 import json
 from pathlib import Path
 from typing import Dict, List
@@ -32,12 +33,14 @@ from scipy.stats import spearmanr
 
 def load_rounds(folder: Path) -> List[dict]:
     rounds = []
-    for path in sorted(folder.glob("*/*/*/*-candidates.jsonl")):
+    paths = sorted(folder.glob("*/*/*/*-candidates.jsonl.gz")) + sorted(folder.glob("*/*/*/*-candidates.jsonl"))
+    for path in paths:
         scene = path.relative_to(folder).parts[0]
-        result = path.with_name(path.name.replace("-candidates.jsonl", ".json"))
+        result = path.with_name(path.name.split("-candidates.jsonl")[0] + ".json")
         run = json.loads(result.read_text()) if result.is_file() else {}  # a run killed mid-way has no result
         which = {"scene": scene, "seed": run.get("seed"), "repeat": run.get("repeat", 0)}
-        for line in path.read_text().splitlines():
+        text = gzip.decompress(path.read_bytes()).decode() if path.suffix == ".gz" else path.read_text()
+        for line in text.splitlines():
             if line.strip():
                 rounds.append({**json.loads(line), **which})
     return rounds
@@ -131,7 +134,7 @@ def main() -> None:
     args = ap.parse_args()
     rounds = load_rounds(args.folder)
     if not rounds:
-        raise SystemExit(f"candidate_scores: no *-candidates.jsonl under {args.folder}; run hpgs bench --log-candidate-scores")
+        raise SystemExit(f"candidate_scores: no *-candidates.jsonl.gz under {args.folder}; run hpgs bench --log-candidate-scores")
     logged = sorted(rounds[0]["scores"])
     selectors = args.selectors or logged
     unknown = sorted(set(selectors) - set(logged))

@@ -85,7 +85,7 @@ collect)
   end=$(($(date +%s) + $2))
   busy() { for log in /tmp/sweep-*.log; do grep -q "plan finished" "$log" || return 0; done; return 1; }
   while [ "$(date +%s)" -lt "$end" ] && busy; do sleep 5; done
-  (cd "$bench" && find . \( -name 'seed*.json' -o -name 'seed*-candidates.jsonl' \) -newer /tmp/sweep.start -not -path './_*' | tar czf "$OUT/results.tgz" -T -)
+  (cd "$bench" && find . \( -name 'seed*.json' -o -name 'seed*-candidates.jsonl*' \) -newer /tmp/sweep.start -not -path './_*' | tar czf "$OUT/results.tgz" -T -)
   # `commands` groups write their results under /tmp/extra (e.g. suggest_check.py --out /tmp/extra/suggest)
   [ -d /tmp/extra ] && (cd /tmp/extra && find . -name '*.json' -not -path '*/_*' | tar czf "$OUT/extra.tgz" -T -)
   for log in /tmp/sweep-*.log; do echo "##### $log"; cat "$log"; done > "$OUT/sweep.log"

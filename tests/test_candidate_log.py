@@ -3,6 +3,7 @@ each candidate's render error, without changing the run; and the offline analysi
 
 from __future__ import annotations
 
+import gzip
 import json
 import random
 import sys
@@ -47,9 +48,10 @@ def test_the_analysis_fits_the_combination_leaving_one_scene_out(tmp_path):
 
     rng = np.random.default_rng(0)
     for scene in ("a", "b", "c"):
-        path = tmp_path / scene / "fisherrf" / "random" / "seed0-candidates.jsonl"
+        # as hpgs bench keeps them (gzip), and one scene as an older plain .jsonl
+        path = tmp_path / scene / "fisherrf" / "random" / f"seed0-candidates.jsonl{'' if scene == 'c' else '.gz'}"
         path.parent.mkdir(parents=True)
-        with open(path, "w") as f:
+        with (open(path, "w") if scene == "c" else gzip.open(path, "wt")) as f:
             for _ in range(4):
                 error = rng.random(20)
                 scores = {"fisher": list(error + 0.1 * rng.random(20)), "farthest": list(rng.random(20))}

@@ -14,6 +14,7 @@ dataparser and options. `hpgs bench --stress pose-noise exposure corrupt` also r
 from __future__ import annotations
 
 import dataclasses
+import gzip
 import json
 import os
 import shlex
@@ -29,7 +30,7 @@ import tyro
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-from hpgs_ns.atomic_write import write_json_atomic
+from hpgs_ns.atomic_write import atomic_path, write_json_atomic
 from hpgs_ns.bench import provenance
 from hpgs_ns.bench.executors import ExecutorConfig, make_executor, runs_per_device
 from hpgs_ns.bench.protocols import DEFAULT_SELECTORS, PROTOCOLS, REFERENCES, Protocol, scaled
@@ -106,7 +107,7 @@ class Bench:
     """The gain calibration for --stop-when-gain-below (`benchmarks/early_stop.py --write-model`)."""
     log_candidate_scores: bool = False
     """Also log every selector's score of every candidate and each candidate's render error at every round
-    (`<stem>-candidates.jsonl` beside each result; for tuning selectors offline, `benchmarks/candidate_scores.py`)."""
+    (`<stem>-candidates.jsonl.gz` beside each result; for tuning selectors offline, `benchmarks/candidate_scores.py`)."""
     accept_code_change: bool = False
     """Keep finished runs whose only difference is the code (e.g. a sweep built across commits whose changes
     cannot move the numbers); the report then says how many code versions are behind the comparisons."""
@@ -376,9 +377,11 @@ def run_one(bench: Bench, job: Job, env: Optional[Dict[str, str]] = None, sweep:
         raise SystemExit(f"hpgs bench: training failed ({shlex.join(cmd)}):\n{tail}")
     log = run_dir / "candidate_scores.jsonl"
     if log.is_file():
-        keep = job.result_path(bench.out).with_name(f"{job.stem}-candidates.jsonl")
+        # gzip: the logs are most of a results folder's bytes (~3x smaller), and results travel to the GPU machine
+        keep = job.result_path(bench.out).with_name(f"{job.stem}-candidates.jsonl.gz")
         keep.parent.mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(log, keep)
+        with atomic_path(keep) as tmp, open(log, "rb") as src, gzip.open(tmp, "wb") as dst:
+            shutil.copyfileobj(src, dst)
     metrics = json.loads((run_dir / "eval.json").read_text())
     selected = json.loads((run_dir / "selected_views.json").read_text())
     rounds = selected["rounds"]
