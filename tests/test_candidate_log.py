@@ -64,3 +64,21 @@ def test_the_analysis_fits_the_combination_leaving_one_scene_out(tmp_path):
     assert set(loso["per_scene"]) == {"a", "b", "c"}
     assert all(w["fisher"] > 5 * abs(w["farthest"]) for w in loso["weights"].values())  # learnt on the other scenes
     assert loso["held_out_mean"]["spearman"] > 0.9
+
+
+def test_bench_keeps_a_runs_log_gzipped_and_the_analysis_reads_it(tmp_path):
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    from candidate_scores import load_rounds
+
+    from hpgs_ns.bench.runs import keep_candidate_log
+
+    log = tmp_path / "run" / "candidate_scores.jsonl"
+    log.parent.mkdir()
+    lines = [{"scores": {"farthest": [0.1, 0.9]}, "oracle": {"lpips": [0.2, 0.3]}, "round": k} for k in range(3)]
+    log.write_text("".join(json.dumps(x) + "\n" for x in lines))
+    keep = tmp_path / "out" / "s" / "fisherrf" / "farthest" / "seed1-candidates.jsonl.gz"
+    keep_candidate_log(log, keep)
+    (keep.parent / "seed1.json").write_text(json.dumps({"seed": 1}))
+    assert sorted(p.name for p in keep.parent.iterdir()) == ["seed1-candidates.jsonl.gz", "seed1.json"]  # no temp
+    rounds = load_rounds(tmp_path / "out")
+    assert [r["round"] for r in rounds] == [0, 1, 2] and {(r["scene"], r["seed"]) for r in rounds} == {("s", 1)}

@@ -280,11 +280,7 @@ def train_args(bench: Bench, job: Job, run_root: Path) -> List[str]:
             datamanager["gain-model"] = Path(bench.gain_model).resolve()
     if bench.log_candidate_scores and name not in REFERENCES:
         datamanager["log-candidate-scores"] = True
-    model = scene_preference_model(bench, job)
-    if model is not None:
-        datamanager[f"{name}.model"] = model
-    for option, value in scene_blend_weights(bench, job).items():
-        datamanager[f"blend.{option}"] = value
+    datamanager.update(scene_selector_options(bench, job))
     return ns_train_command(
         job.scene.path, run_root, job.scene.name, job.run_folder(run_root).name, protocol.steps,
         # ns-eval's JSON, written by the training process (hpgs_ns/trainer.py): no second start-up per run
@@ -299,10 +295,7 @@ def run_settings(bench: Bench, job: Job) -> dict:
     schedule, the dataparser and its options, the code that trains and selects, the selector's options and its
     preference model."""
     selector = None if job.name in REFERENCES else job.name
-    model = scene_preference_model(bench, job)
-    own = [f"--pipeline.datamanager.{selector}.model", str(model)] if model is not None else []
-    for option, value in scene_blend_weights(bench, job).items():
-        own += [f"--pipeline.datamanager.blend.{option}", str(value)]
+    own = [w for k, v in scene_selector_options(bench, job).items() for w in (f"--pipeline.datamanager.{k}", str(v))]
     options = provenance.selector_options(selector, shlex.split(bench.extra_args) + own) if selector else None
     return {
         "steps": job.protocol.steps,
@@ -319,6 +312,17 @@ def run_settings(bench: Bench, job: Job) -> dict:
     }
 
 
+def scene_selector_options(bench: Bench, job: Job) -> Dict[str, Any]:
+    """The datamanager options this scene's selector gets from the sweep (as `--pipeline.datamanager.` suffixes):
+    its preference model (--preference-models) and blend's weights (--blend-weights), both fitted without it."""
+    options: Dict[str, Any] = {}
+    model = scene_preference_model(bench, job)
+    if model is not None:
+        options[f"{job.name}.model"] = model
+    options.update({f"blend.{k}": v for k, v in scene_blend_weights(bench, job).items()})
+    return options
+
+
 def scene_preference_model(bench: Bench, job: Job) -> Optional[Path]:
     """The scene's own preference model under --preference-models, for selectors that run one (else None)."""
     if bench.preference_models is None or job.name not in PREFERENCE_SELECTORS:
@@ -328,6 +332,13 @@ def scene_preference_model(bench: Bench, job: Job) -> Optional[Path]:
         raise SystemExit(f"hpgs bench: no preference model {path} for scene {job.scene.name!r}; train one without that "
                          "scene (leave one scene out) or drop --preference-models")
     return path
+
+
+def keep_candidate_log(log: Path, keep: Path) -> None:
+    """Copy a run's candidate_scores.jsonl beside its result, gzipped: the logs are most of a results folder's bytes
+    (~3x smaller so), and results travel to the GPU machine."""
+    with atomic_path(keep) as tmp, open(log, "rb") as src, gzip.GzipFile(tmp, "wb", mtime=0) as dst:
+        shutil.copyfileobj(src, dst)
 
 
 def scene_blend_weights(bench: Bench, job: Job) -> Dict[str, float]:
@@ -377,11 +388,7 @@ def run_one(bench: Bench, job: Job, env: Optional[Dict[str, str]] = None, sweep:
         raise SystemExit(f"hpgs bench: training failed ({shlex.join(cmd)}):\n{tail}")
     log = run_dir / "candidate_scores.jsonl"
     if log.is_file():
-        # gzip: the logs are most of a results folder's bytes (~3x smaller), and results travel to the GPU machine
-        keep = job.result_path(bench.out).with_name(f"{job.stem}-candidates.jsonl.gz")
-        keep.parent.mkdir(parents=True, exist_ok=True)
-        with atomic_path(keep) as tmp, open(log, "rb") as src, gzip.open(tmp, "wb") as dst:
-            shutil.copyfileobj(src, dst)
+        keep_candidate_log(log, job.result_path(bench.out).with_name(f"{job.stem}-candidates.jsonl.gz"))
     metrics = json.loads((run_dir / "eval.json").read_text())
     selected = json.loads((run_dir / "selected_views.json").read_text())
     rounds = selected["rounds"]
