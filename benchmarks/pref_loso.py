@@ -39,7 +39,7 @@ import torch
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from hpgs_ns.atomic_write import write_text_atomic  # noqa: E402
+from hpgs_ns.atomic_write import atomic_path, write_text_atomic  # noqa: E402
 from hpgs_ns.preference.evaluate import index_pairs, pair_accuracy_from_scores, raw_features_of  # noqa: E402
 from hpgs_ns.preference.model import PreferenceModel  # noqa: E402
 from hpgs_ns.preference.pairs import read_usable_pairs  # noqa: E402
@@ -72,6 +72,25 @@ def oracle_pairs(renders: List[Render], n: int, same_step: bool, seed: int, marg
     return out
 
 
+def cached_features(model: PreferenceModel, backbone: str, paths: List[Path], cache: Path | None) -> torch.Tensor:
+    """`raw_features_of` for these images, kept under `cache` keyed by backbone and the images' paths, sizes and
+    mtimes: a frozen backbone's features (~30 min of CPU for vgg16 on ~2000 renders) are the slow part of a recipe
+    search, and they do not change between recipes or runs."""
+    if cache is None:
+        return raw_features_of(model, paths, batch_size=32)
+    key = hashlib.sha256()
+    for p in paths:
+        st = Path(p).stat()
+        key.update(f"{Path(p).resolve()}|{st.st_size}|{st.st_mtime_ns}\n".encode())
+    file = cache / f"{backbone}-{len(paths)}-{key.hexdigest()[:16]}.pt"
+    if file.is_file():
+        return torch.load(file)
+    features = raw_features_of(model, paths, batch_size=32)
+    with atomic_path(file) as tmp:
+        torch.save(features, tmp)
+    return features
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("scenes", type=Path, nargs="+", help="`hpgs collect` output folders, one per scene")
@@ -86,6 +105,8 @@ def main() -> None:
     ap.add_argument("--test-pairs", type=int, default=2000, help="oracle pairs per held-out scene, of each kind")
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "pref_loso.json")
     ap.add_argument("--write-model", type=Path, default=None)
+    ap.add_argument("--feature-cache", type=Path, default=None,
+                    help="keep each backbone's features of the renders here (a second search then takes seconds)")
     args = ap.parse_args()
     shared = Path(os.environ.get("HPGS_SHARED", REPO / ".." / "shared"))
     garden = args.garden or shared / "data" / "hpgs-pairs-garden"
@@ -118,7 +139,7 @@ def main() -> None:
     for backbone in args.backbones:
         t0 = time.time()
         models[backbone] = PreferenceModel(backbone, pretrained=True).eval()
-        features[backbone] = raw_features_of(models[backbone], paths, batch_size=32)
+        features[backbone] = cached_features(models[backbone], backbone, paths, args.feature_cache)
         print(f"{backbone}: features of {len(paths)} renders in {time.time() - t0:.0f} s")
         for l2, same, margin in itertools.product(args.l2, (False, True), args.margins):
             per_kind: Dict[str, Dict[str, float]] = {"any": {}, "same-step": {}}
@@ -145,7 +166,8 @@ def main() -> None:
     garden_pairs = read_usable_pairs([garden / "pairs.csv"])
     g_images, g_index, g_labels = index_pairs(garden_pairs)
     with torch.no_grad():
-        g_scores = model.score_features(model.standardise(raw_features_of(model, g_images, batch_size=32)))
+        g_raw = cached_features(model, best["backbone"], list(g_images), args.feature_cache)
+        g_scores = model.score_features(model.standardise(g_raw))
     garden_acc = pair_accuracy_from_scores(g_scores, g_index, g_labels)
     constant = float(g_labels.float().mean())
     print(f"chosen by {args.choose_by} pairs: {best['backbone']}, l2 {best['l2']:g}, {best['pairs']}, margin {best['margin']:g} "
