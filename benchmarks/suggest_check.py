@@ -2,9 +2,11 @@
 suggestions from the arc, retrain, and compare test PSNR with the same done for `farthest`'s and `random`'s poses.
 
 For each scene (of a suite), seed and block (an arc of the training cameras' azimuths around the capture's
-centre, and where the capture has a higher pass, the views above its widest gap in elevation): a base run trains on every training view but the arc; `hpgs suggest` (in-process, on the base run)
-proposes `--num` orbit poses per selector; each pose is matched to the nearest photo of the arc not yet taken; a
-run per selector then trains from scratch on every view but the arc plus its matched photos (same seed and steps).
+centre, and where the capture has a higher pass, the views above its widest gap in elevation): a base run trains
+on every training view but the block; `hpgs suggest` (in-process, on the base run) proposes `--num` poses per
+selector (orbit candidates for an arc; sphere candidates for the band, as the orbit's rings stay at the heights of
+the photos left); each pose is matched to the nearest photo of the block not yet taken; a run per selector then
+trains from scratch on every view but the block plus its matched photos (same seed and steps).
 Runs are paired by (scene, block, seed); gains over `farthest` and `random` get the benchmark's intervals
 (`hpgs_ns.bench.stats`, the unit being the scene). Results: one JSON per run under OUT, `suggest_check.md`.
 
@@ -143,7 +145,8 @@ def check_block(scene: Scene, seed: int, k: int, block: List[int], names: List[s
     run = load_run(Path(base["config"]))
     picks: Dict[str, List[int]] = {}
     for selector in args.selectors:
-        answer = suggest(run, Suggest(Path(base["config"]), num=args.num, selector=selector, candidates="orbit",
+        candidates = "sphere" if withheld_as == "band" else "orbit"
+        answer = suggest(run, Suggest(Path(base["config"]), num=args.num, selector=selector, candidates=candidates,
                                       count=args.count, min_distance=args.min_distance, seed=seed))
         picks[selector] = nearest_photos([s["camera_to_world"] for s in answer["suggestions"]],
                                          run.pipeline.datamanager.train_dataset.cameras.camera_to_worlds[block], block)
@@ -153,8 +156,8 @@ def check_block(scene: Scene, seed: int, k: int, block: List[int], names: List[s
         taken = picks[selector]
         result = train(scene, out, f"{label}-{selector}", [names[i] for i in block if i not in taken], seed, args)
         return {"scene": scene.name, "protocol": "withheld-arc", "selector": selector, "seed": k * 1000 + seed,
-                "block": k, "withheld": withheld_as, "block_views": len(block), "photos_taken": [names[i] for i in taken],
-                **result}
+                "block": k, "withheld": withheld_as, "candidates": "sphere" if withheld_as == "band" else "orbit",
+                "block_views": len(block), "photos_taken": [names[i] for i in taken], **result}
 
     with ThreadPoolExecutor(args.parallel) as pool:
         rows = list(pool.map(final, args.selectors))
