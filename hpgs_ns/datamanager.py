@@ -104,7 +104,7 @@ class ActiveDatamanagerConfig(FullImageDatamanagerConfig):
     default: every round runs): views a scene does not need are not added."""
     gain_model: Optional[Path] = None
     """The gain calibration for stop-when-gain-below (`benchmarks/early_stop.py --write-model`; default:
-    hpgs_ns/assets/gain-model.json, not shipped yet, so pass one)."""
+    hpgs_ns/assets/gain-model.json, fitted on the suite's FisherRF-protocol runs)."""
     log_candidate_scores: bool = False
     """After each round, log every built-in selector's score of every candidate and each candidate's render error
     against its withheld photo to candidate_scores.jsonl (analysis only: never read by the run, and its random

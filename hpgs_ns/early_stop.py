@@ -24,7 +24,9 @@ from typing import Dict, Iterable, List, Optional, Sequence, Tuple
 
 import numpy as np
 
-DEFAULT_GAIN_MODEL = Path(__file__).resolve().parent / "assets" / "gain-model.json"  # none shipped yet
+# Fitted on the suite's FisherRF-protocol runs (benchmarks/early_stop.py --write-model; README "Skip what a scene
+# doesn't need"): another schedule or resolution wants its own.
+DEFAULT_GAIN_MODEL = Path(__file__).resolve().parent / "assets" / "gain-model.json"
 ALL = "*"  # the average over selectors
 
 

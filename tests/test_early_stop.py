@@ -82,3 +82,12 @@ def test_a_run_stops_selecting_when_the_next_view_gains_too_little(tiny_scene, t
 def test_a_missing_gain_model_is_a_one_line_error(tmp_path):
     with pytest.raises(UserError, match="no gain model at .*nope.json: pass --pipeline.datamanager.gain-model FILE"):
         GainModel.load(tmp_path / "nope.json")
+
+
+def test_the_shipped_gain_model_is_the_suites_and_predicts_less_per_view_as_views_grow():
+    model = GainModel.load()  # hpgs_ns/assets/gain-model.json
+    assert set(model.fitted_on) == {"bonsai", "campus-building", "fox", "juicebox", "mold-gold-cape", "stitch"}
+    assert {"*", "random", "farthest", "fisher", "hpgs"} <= set(model.coefficients)
+    for selector in ("*", "farthest", "fisher", "hpgs", "condorcet"):  # condorcet: no runs, the average
+        gains = [model.predict(selector, v) for v in (4, 10, 19)]
+        assert gains[0] > gains[1] > gains[2] > 0 and gains[0] < 1.0  # every view still pays up to 20, less and less
