@@ -1,10 +1,10 @@
 """How well each selector's scores find the candidates the splat renders worst, from `--log-candidate-scores` logs.
 
-Reads every `*-candidates.jsonl.gz` (or `.jsonl`) under a results folder (`hpgs bench --log-candidate-scores`): per round, each
-built-in selector's score of every candidate and the candidate's render error against its withheld photo (the
-oracle). For each selector: the Spearman correlation of its scores with the oracle LPIPS (mean over rounds) and the
-oracle percentile of its top pick (1.0: it picked the worst-rendered candidate). Then a linear combination of the
-selectors' per-round z-scores, fitted to the oracle's z-scores by least squares *leaving one scene out*: the
+Reads every `*-candidates.jsonl.gz` (or `.jsonl`) under a results folder (`hpgs bench --log-candidate-scores`):
+per round, each built-in selector's score of every candidate and the candidate's render error against its withheld
+photo (the oracle). For each selector: the Spearman correlation of its scores with the oracle LPIPS (mean over
+rounds) and the oracle percentile of its top pick (1.0: it picked the worst-rendered candidate). Then a linear
+combination of the selectors' per-round z-scores, fitted to the oracle's z-scores by least squares *leaving one scene out*: the
 numbers reported for it are on the scene it never saw.
 
     python benchmarks/candidate_scores.py benchmarks/results/suite --out candidate_scores.json
@@ -21,8 +21,8 @@ every subset of the logged scores leave one scene out.
 from __future__ import annotations
 
 import argparse
-import itertools
 import gzip
+import itertools
 import json
 from pathlib import Path
 from typing import Dict, List
