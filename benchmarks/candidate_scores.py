@@ -4,8 +4,8 @@ Reads every `*-candidates.jsonl.gz` (or `.jsonl`) under a results folder (`hpgs 
 per round, each built-in selector's score of every candidate and the candidate's render error against its withheld
 photo (the oracle). For each selector: the Spearman correlation of its scores with the oracle LPIPS (mean over
 rounds) and the oracle percentile of its top pick (1.0: it picked the worst-rendered candidate). Then a linear
-combination of the selectors' per-round z-scores, fitted to the oracle's z-scores by least squares *leaving one scene out*: the
-numbers reported for it are on the scene it never saw.
+combination of the selectors' per-round z-scores, fitted to the oracle's z-scores by least squares *leaving one
+scene out*: the numbers reported for it are on the scene it never saw.
 
     python benchmarks/candidate_scores.py benchmarks/results/suite --out candidate_scores.json
 

@@ -144,8 +144,8 @@ def check_block(scene: Scene, seed: int, k: int, block: List[int], names: List[s
     base = train(scene, out, f"{label}-none", withheld, seed, args)
     run = load_run(Path(base["config"]))
     picks: Dict[str, List[int]] = {}
+    candidates = "sphere" if withheld_as == "band" else "orbit"
     for selector in args.selectors:
-        candidates = "sphere" if withheld_as == "band" else "orbit"
         answer = suggest(run, Suggest(Path(base["config"]), num=args.num, selector=selector, candidates=candidates,
                                       count=args.count, min_distance=args.min_distance, seed=seed))
         picks[selector] = nearest_photos([s["camera_to_world"] for s in answer["suggestions"]],
@@ -156,7 +156,7 @@ def check_block(scene: Scene, seed: int, k: int, block: List[int], names: List[s
         taken = picks[selector]
         result = train(scene, out, f"{label}-{selector}", [names[i] for i in block if i not in taken], seed, args)
         return {"scene": scene.name, "protocol": "withheld-arc", "selector": selector, "seed": k * 1000 + seed,
-                "block": k, "withheld": withheld_as, "candidates": "sphere" if withheld_as == "band" else "orbit",
+                "block": k, "withheld": withheld_as, "candidates": candidates,
                 "block_views": len(block), "photos_taken": [names[i] for i in taken], **result}
 
     with ThreadPoolExecutor(args.parallel) as pool:

@@ -526,7 +526,7 @@ def run_sweep(bench: Bench, jobs: Sequence[Job], config: ExecutorConfig) -> None
             else:
                 failures.append(f"{job.label} (log: {value['log']})")
                 errors.append(value["error"] or "")
-                last = (value["error"] or "").strip().splitlines()
+                last = errors[-1].strip().splitlines()
                 progress.console.print(f"[red]failed: {failures[-1]}: {last[-1] if last else ''}")
             progress.advance(bar)
     if failures:
