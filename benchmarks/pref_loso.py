@@ -5,7 +5,9 @@ Input: `hpgs collect` folders of several scenes (renders/ and renders.csv: each 
 its photo). Every render pair of a scene gets an oracle label from LPIPS (the one with the higher LPIPS is
 worse), so no person and no garden label is involved. For each recipe (backbone, L2 penalty on the head, which
 pairs train it, the least LPIPS difference a training pair must have) and each scene S, a head is fitted on the
-other scenes' pairs and scored on S's pairs; the recipe with the best mean over scenes wins. Held-out pairs are
+other scenes' pairs and scored on S's pairs; the recipe with the best mean over scenes wins. Backbones may be
+joined (`alexnet+vgg16`: both trunks' pooled features concatenated) and each trunk's features transformed
+(`--transforms`, see hpgs_ns/preference/model.py). Held-out pairs are
 of two kinds: any two renders, and two views at the same training step (what a selector compares, and what the
 garden labels are: renders of one partially trained splat); `--choose-by` says which one picks the recipe.
 Only then is the winner, trained on every oracle scene, scored on garden's human labels (never seen in training
@@ -13,7 +15,9 @@ or in the choice). With --write-model it is saved with that record.
 
     hpgs collect --data SCENE --out pref/SCENE ...           # for each scene (GPU, or CPU at small size)
     python benchmarks/pref_loso.py pref/juicebox pref/stitch ... --out benchmarks/results/pref_loso.json \\
-        [--write-model hpgs_ns/assets/preference-default.pt]
+        [--write-model hpgs_ns/assets/preference-default.pt] [--no-garden]
+
+`--no-garden` stops after the choice: use it for trial runs, so garden is scored once, for the recipe shipped.
 
 Frozen backbones only (the head is fitted on cached features with L-BFGS: `hpgs_ns.preference.train.fit_head`),
 so a recipe costs seconds once the features are computed.
@@ -41,7 +45,7 @@ sys.path.insert(0, str(REPO))
 
 from hpgs_ns.atomic_write import atomic_path, write_text_atomic  # noqa: E402
 from hpgs_ns.preference.evaluate import index_pairs, pair_accuracy_from_scores, raw_features_of  # noqa: E402
-from hpgs_ns.preference.model import PreferenceModel  # noqa: E402
+from hpgs_ns.preference.model import PreferenceModel, transform_pooled  # noqa: E402
 from hpgs_ns.preference.pairs import read_usable_pairs  # noqa: E402
 from hpgs_ns.preference.train import fit_head_and_score  # noqa: E402
 
@@ -72,6 +76,22 @@ def oracle_pairs(renders: List[Render], n: int, same_step: bool, seed: int, marg
     return out
 
 
+def recipe_features(trunk_features: Dict[str, torch.Tensor], backbone: str, transform: str) -> torch.Tensor:
+    """A recipe's raw features from its trunks' untransformed ones: what PreferenceModel(backbone,
+    feature_transform=transform).raw_features computes (tests/test_preference.py checks they agree)."""
+    return torch.cat([transform_pooled(trunk_features[t], transform) for t in backbone.split("+")], dim=1)
+
+
+def trunk_features_of(trunks: List[str], paths: List[Path], cache: Path | None) -> Dict[str, torch.Tensor]:
+    """Untransformed raw features of every trunk, from `cache` when there."""
+    out = {}
+    for trunk in trunks:
+        t0 = time.time()
+        out[trunk] = cached_features(PreferenceModel(trunk, pretrained=True).eval(), trunk, paths, cache)
+        print(f"{trunk}: features of {len(paths)} images in {time.time() - t0:.0f} s")
+    return out
+
+
 def cached_features(model: PreferenceModel, backbone: str, paths: List[Path], cache: Path | None) -> torch.Tensor:
     """`raw_features_of` for these images, kept under `cache` keyed by backbone and the images' paths, sizes and
     mtimes: a frozen backbone's features (~30 min of CPU for vgg16 on ~2000 renders) are the slow part of a recipe
@@ -95,8 +115,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("scenes", type=Path, nargs="+", help="`hpgs collect` output folders, one per scene")
     ap.add_argument("--garden", type=Path, default=None, help="hpgs-pairs-garden folder (default: ../shared/data)")
-    ap.add_argument("--backbones", nargs="*", default=["alexnet", "vgg16"])
-    ap.add_argument("--l2", type=float, nargs="*", default=[0.1, 1.0, 10.0])
+    ap.add_argument("--backbones", nargs="*", default=["alexnet", "vgg16", "alexnet+vgg16"])
+    ap.add_argument("--transforms", nargs="*", default=["none", "sqrt-l2"], help="per-trunk feature transforms")
+    ap.add_argument("--l2", type=float, nargs="*", default=[0.1, 0.3, 1.0])
     ap.add_argument("--margins", type=float, nargs="*", default=[0.0, 0.02, 0.05],
                     help="least LPIPS difference of a training pair")
     ap.add_argument("--choose-by", choices=("same-step", "any"), default="same-step",
@@ -105,8 +126,12 @@ def main() -> None:
     ap.add_argument("--test-pairs", type=int, default=2000, help="oracle pairs per held-out scene, of each kind")
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "pref_loso.json")
     ap.add_argument("--write-model", type=Path, default=None)
+    ap.add_argument("--write-loso-models", type=Path, default=None, metavar="DIR",
+                    help="also write DIR/<scene>.pt: the chosen recipe trained without that scene, for "
+                         "`hpgs bench --preference-models DIR` (no benchmark run sees a model that saw its scene)")
     ap.add_argument("--feature-cache", type=Path, default=None,
                     help="keep each backbone's features of the renders here (a second search then takes seconds)")
+    ap.add_argument("--no-garden", action="store_true", help="stop after the choice (trial runs); writes no model")
     args = ap.parse_args()
     shared = Path(os.environ.get("HPGS_SHARED", REPO / ".." / "shared"))
     garden = args.garden or shared / "data" / "hpgs-pairs-garden"
@@ -135,22 +160,23 @@ def main() -> None:
         t = torch.tensor(rows, dtype=torch.long)
         return t[:, :2], t[:, 2]
 
-    results, features, models = [], {}, {}
-    for backbone in args.backbones:
-        t0 = time.time()
-        models[backbone] = PreferenceModel(backbone, pretrained=True).eval()
-        features[backbone] = cached_features(models[backbone], backbone, paths, args.feature_cache)
-        print(f"{backbone}: features of {len(paths)} renders in {time.time() - t0:.0f} s")
+    trunks = sorted({t for b in args.backbones for t in b.split("+")})
+    trunk_features = trunk_features_of(trunks, paths, args.feature_cache)
+    results = []
+    for backbone, transform in itertools.product(args.backbones, args.transforms):
+        model = PreferenceModel(backbone, pretrained=True, feature_transform=transform).eval()
+        features = recipe_features(trunk_features, backbone, transform)
+        print(f"{backbone}, transform {transform}:")
         for l2, same, margin in itertools.product(args.l2, (False, True), args.margins):
             per_kind: Dict[str, Dict[str, float]] = {"any": {}, "same-step": {}}
             for held in names:
                 index, labels = as_index({s: train[(s, same, margin)] for s in names if s != held})
-                scores = fit_head_and_score(models[backbone], features[backbone], index, labels, l2=l2)
+                scores = fit_head_and_score(model, features, index, labels, l2=l2)
                 for kind in per_kind:
                     t_index, t_labels = as_index({held: tests[kind][held]})
                     per_kind[kind][held] = pair_accuracy_from_scores(scores, t_index, t_labels)
-            recipe = {"backbone": backbone, "l2": l2, "pairs": "same step" if same else "any two renders",
-                      "margin": margin}
+            recipe = {"backbone": backbone, "feature_transform": transform, "l2": l2,
+                      "pairs": "same step" if same else "any two renders", "margin": margin}
             means = {kind: statistics.mean(v.values()) for kind, v in per_kind.items()}
             results.append({**recipe, "loso_mean": means[args.choose_by], "loso_mean_any": means["any"],
                             "loso_mean_same_step": means["same-step"], "per_scene": per_kind[args.choose_by]})
@@ -159,23 +185,47 @@ def main() -> None:
                   + ", ".join(f"{s} {a:.3f}" for s, a in per_kind[args.choose_by].items()) + ")")
 
     best = max(results, key=lambda r: r["loso_mean"])
+    recipe_keys = ("backbone", "feature_transform", "l2", "pairs", "margin")
+    print(f"chosen by {args.choose_by} pairs among {len(results)} recipes: "
+          + ", ".join(f"{k} {best[k]}" for k in recipe_keys) + f" (leave-one-scene-out {best['loso_mean']:.3f})")
     same = best["pairs"] == "same step"
-    model = models[best["backbone"]]
+    command = " ".join(["python", "benchmarks/pref_loso.py"] + sys.argv[1:])
+    renders_sha = {f.name: hashlib.sha256((f / "renders.csv").read_bytes()).hexdigest() for f in args.scenes}
+    recipe = {k: best[k] for k in recipe_keys}
+    if args.write_loso_models:
+        for held in names:
+            model = PreferenceModel(best["backbone"], pretrained=True, feature_transform=best["feature_transform"]).eval()
+            index, labels = as_index({s: train[(s, same, best["margin"])] for s in names if s != held})
+            fit_head_and_score(model, recipe_features(trunk_features, best["backbone"], best["feature_transform"]),
+                               index, labels, l2=best["l2"])
+            others = [n for n in names if n != held]
+            model.meta = {
+                "training_data": {"oracle_scenes": others, "renders_csv_sha256": [renders_sha[n] for n in others],
+                                  "train_pairs": int(len(labels)), "human_labels": "none", "held_out_scene": held},
+                "recipe": recipe, "held_out_accuracy": best["per_scene"][held], "backbone_trained": False,
+                "made_by": command,
+            }
+            model.save(args.write_loso_models / f"{held}.pt")
+        print(f"wrote {len(names)} models, each without its scene, to {args.write_loso_models}")
+    if args.no_garden:
+        return
+    model = PreferenceModel(best["backbone"], pretrained=True, feature_transform=best["feature_transform"]).eval()
     index, labels = as_index({s: train[(s, same, best["margin"])] for s in names})
-    fit_head_and_score(model, features[best["backbone"]], index, labels, l2=best["l2"])
+    fit_head_and_score(model, recipe_features(trunk_features, best["backbone"], best["feature_transform"]), index,
+                       labels, l2=best["l2"])
     garden_pairs = read_usable_pairs([garden / "pairs.csv"])
     g_images, g_index, g_labels = index_pairs(garden_pairs)
     with torch.no_grad():
-        g_raw = cached_features(model, best["backbone"], list(g_images), args.feature_cache)
+        g_raw = recipe_features(trunk_features_of(best["backbone"].split("+"), list(g_images), args.feature_cache),
+                                best["backbone"], best["feature_transform"])
         g_scores = model.score_features(model.standardise(g_raw))
     garden_acc = pair_accuracy_from_scores(g_scores, g_index, g_labels)
     constant = float(g_labels.float().mean())
-    print(f"chosen by {args.choose_by} pairs: {best['backbone']}, l2 {best['l2']:g}, {best['pairs']}, margin {best['margin']:g} "
-          f"(leave-one-scene-out {best['loso_mean']:.3f}); "
-          f"garden human labels: {garden_acc:.3f} on {len(garden_pairs)} pairs (constant answer {constant:.3f})")
+    print(f"garden human labels: {garden_acc:.3f} on {len(garden_pairs)} pairs (constant answer {constant:.3f})")
     record = {
-        "recipe": {k: best[k] for k in ("backbone", "l2", "pairs", "margin")},
+        "recipe": recipe,
         "chosen_by": f"{args.choose_by} held-out pairs",
+        "recipes_compared": len(results),
         "oracle": "LPIPS of each render against its photo (higher = worse)",
         "scenes": {n: {"renders": len(renders[n]), "train_pairs_per_policy": args.train_pairs,
                        "test_pairs": {kind: len(tests[kind][n]) for kind in tests}} for n in names},
@@ -184,15 +234,13 @@ def main() -> None:
         "garden_human_accuracy": garden_acc,
         "garden_pairs": len(garden_pairs),
         "garden_constant_answer": constant,
-        "command": " ".join(["python", "benchmarks/pref_loso.py"] + sys.argv[1:]),
+        "command": command,
     }
     write_text_atomic(args.out, json.dumps(record, indent=1) + "\n")
     print(f"wrote {args.out}")
     if args.write_model:
-        renders_csv = [f / "renders.csv" for f in args.scenes]
         model.meta = {
-            "training_data": {"oracle_scenes": names, "renders_csv_sha256": [hashlib.sha256(p.read_bytes()).hexdigest()
-                                                                           for p in renders_csv],
+            "training_data": {"oracle_scenes": names, "renders_csv_sha256": [renders_sha[n] for n in names],
                               "train_pairs": int(len(labels)), "human_labels": "none (garden never seen)"},
             "recipe": record["recipe"],
             "leave_one_scene_out_accuracy": best["loso_mean"],

