@@ -61,6 +61,31 @@ def short_config(scene: Path, out: Path, steps: int = 60, every: int = 20, round
     return cfg
 
 
+@pytest.fixture(scope="session")
+def light_preference_model(tmp_path_factory) -> Path:
+    """A small preference model (alexnet at 64 px, seeded head) for tests of selection mechanics. The shipped
+    default runs two trunks at 224 px (0.7 s a view on one CPU core), which would nearly double the suite's time;
+    its own quality is checked on garden's human labels (test_preference.py)."""
+    import torch
+
+    from hpgs_ns.preference.model import PreferenceModel
+
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(0)
+        model = PreferenceModel("alexnet", input_size=64)
+        model.head.weight.data.normal_(0, 0.05)
+    return model.save(tmp_path_factory.mktemp("light-model") / "light.pt")
+
+
+@pytest.fixture(autouse=True)
+def _light_default_model(request, monkeypatch):
+    """In-process runs use the light model wherever they would load the default, except in tests marked
+    `shipped_model` (those that check the default itself)."""
+    if request.node.get_closest_marker("shipped_model") is None:
+        path = request.getfixturevalue("light_preference_model")
+        monkeypatch.setattr("hpgs_ns.selectors.preference_features.DEFAULT_MODEL", path)
+
+
 def run_training(cfg):
     """Set up and train in-process, the way `ns-train` does; returns the trainer."""
     cfg.set_timestamp()

@@ -295,6 +295,7 @@ def test_per_scene_preference_models_are_used_and_checked(tmp_path):
         train_args(bench, hpgs_job, tmp_path)
 
 
+@pytest.mark.shipped_model
 def test_a_suite_scene_the_default_model_saw_is_named_unless_per_scene_models_are_given(tmp_path):
     from hpgs_ns.bench.runs import default_model_scenes
 

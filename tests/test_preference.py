@@ -307,6 +307,7 @@ def test_a_checkpoint_from_before_transforms_reads_as_none_and_a_bad_pairing_is_
     assert "\n" not in err.split("train-pref: ", 1)[-1] and "--feature-transform none" in err
 
 
+@pytest.mark.shipped_model
 def test_the_shipped_default_never_saw_garden_and_scores_its_record_on_the_garden_human_labels():
     """Issue 21: the default model, chosen leave one scene out on oracle-labelled renders of the suite scenes,
     agrees with the HP-GS authors' human labels on garden (a scene it never saw) at least 85% of the time."""

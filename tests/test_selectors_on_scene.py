@@ -114,6 +114,7 @@ def test_hpgs_with_a_blur_preferring_model_picks_the_unseen_side(one_sided, tiny
     assert len(selection.scores) == len(trainer.pipeline.datamanager.candidates)
 
 
+@pytest.mark.shipped_model  # the shipped model's 224-pixel input, and one selection with it
 def test_preference_selectors_render_small_views_as_they_are_and_large_ones_at_the_model_size(one_sided):
     from hpgs_ns.selectors.preference_features import _render_short_side
 
