@@ -283,6 +283,9 @@ def test_joined_backbone_with_sqrt_l2_is_the_recipe_search_features_and_survives
     # each trunk's part has unit norm and no negative entries
     assert torch.allclose(raw[:, :2304].norm(dim=1), torch.ones(2), atol=1e-5) and (raw >= 0).all()
     assert torch.allclose(raw[:, 2304:].norm(dim=1), torch.ones(2), atol=1e-5)
+    zeros = torch.zeros(2, 5, requires_grad=True)  # dead channels: the transform's gradient stays finite
+    pm.transform_pooled(zeros, "sqrt-l2").sum().backward()
+    assert torch.isfinite(zeros.grad).all()
     joined.head.weight.data.normal_()
     joined.save(tmp_path / "m.pt")
     back = pm.PreferenceModel.load(tmp_path / "m.pt")

@@ -85,7 +85,9 @@ def transform_pooled(pooled: torch.Tensor, transform: str) -> torch.Tensor:
     if transform == "none":
         return pooled
     if transform == "sqrt-l2":
-        root = pooled.clamp_min(0).sqrt()  # pooled means and stds of ReLU maps are >= 0; clamp guards rounding
+        # Pooled means and stds of ReLU maps are >= 0; the floor keeps sqrt's gradient finite at 0 (dead channels,
+        # with a trained backbone) and moves a zero by 1e-6 only.
+        root = pooled.clamp_min(1e-12).sqrt()
         return root / root.norm(dim=1, keepdim=True).clamp_min(1e-12)
     raise RecipeError(f"unknown feature transform {transform!r}; choose one of {', '.join(FEATURE_TRANSFORMS)}")
 
