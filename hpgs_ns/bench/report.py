@@ -515,7 +515,8 @@ def gain_plot(rows: List[dict], out: Path) -> List[Path]:
         ax.set(ylabel="test PSNR gain over random (dB)",
                title=f"{protocol}: paired gain over random (dots: scene x seed; diamond: mean over scenes, 95% CI)")
         ax.title.set_fontsize(9)
-        ax.legend(fontsize=7, loc="best")
+        ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 1.0), frameon=False)  # outside: no dot hidden
+        fig.tight_layout()
         path = save_figure(fig, out / f"{protocol}-paired-gains.png")
         paths.append(path)
     return paths
