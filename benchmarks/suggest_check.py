@@ -134,7 +134,7 @@ def train(scene: Scene, out: Path, name: str, exclude: List[str], seed: int, arg
             "command": shlex.join(cmd)}
 
 
-def check_block(scene: Scene, seed: int, k: int, block: List[int], names: List[str], cameras, args,
+def check_block(scene: Scene, seed: int, k: int, block: List[int], names: List[str], args,
                 withheld_as: str = "arc") -> List[dict]:
     from hpgs_ns.suggest.command import Suggest, load_run, suggest
 
@@ -241,7 +241,7 @@ def main() -> None:
             for k, (block, kind) in enumerate(blocks):
                 if len(block) < args.num or (args.only_blocks is not None and k not in args.only_blocks):
                     continue
-                rows += check_block(scene, seed, k, block, names, cameras, args, withheld_as=kind)
+                rows += check_block(scene, seed, k, block, names, args, withheld_as=kind)
     text = report(rows)
     write_text_atomic(args.out / "suggest_check.md", text)
     print(text)
