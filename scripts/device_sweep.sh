@@ -16,10 +16,13 @@
 # benchmarks/results/suite, so finished runs are skipped). `collect` packs every result JSON written since the
 # first group into $OUT/results.tgz (the device tool returns at most 8 files) and the logs into $OUT/sweep.log;
 # unpack with
-#   tar xzf /work/.device/<call>/results.tgz -C benchmarks/results/suite
+#   tar xzf /work/.device/<call>/results.tgz -C benchmarks/results/suite     # or $HPGS_SWEEP_RESULTS
+# HPGS_SWEEP_RESULTS=benchmarks/results/<folder> (same on every call, collect included) sweeps into another results
+# folder than benchmarks/results/suite, e.g. runs whose settings differ from those already there.
 set -o pipefail
 cd "$(dirname "$0")/.."
-bench=/tmp/suite
+results=${HPGS_SWEEP_RESULTS:-benchmarks/results/suite}
+bench=/tmp/$(basename "$results")
 data=/tmp/devdata
 bench_one() {
   if [ -n "$HPGS_SWEEP_COMMANDS" ]; then  # `commands` groups: each line is a whole command, not hpgs bench ARGS
@@ -52,7 +55,7 @@ start|parallel|then|commands)
   [ "$1" = then ] && after=$((n - 1))
   shift
   mkdir -p "$bench" "$data"
-  cp -rn benchmarks/results/suite/. "$bench/" 2>/dev/null
+  [ -d "$results" ] && cp -rn "$results"/. "$bench/" 2>/dev/null
   [ -d .devdata ] && cp -rn .devdata/. "$data/"
   [ -f /tmp/sweep.start ] || touch /tmp/sweep.start
   printf '%s\n' "$@" > "/tmp/plan-$n.txt"
