@@ -192,12 +192,12 @@ def main() -> None:
     command = " ".join(["python", "benchmarks/pref_loso.py"] + sys.argv[1:])
     renders_sha = {f.name: hashlib.sha256((f / "renders.csv").read_bytes()).hexdigest() for f in args.scenes}
     recipe = {k: best[k] for k in recipe_keys}
+    chosen_features = recipe_features(trunk_features, best["backbone"], best["feature_transform"])
     if args.write_loso_models:
         for held in names:
             model = PreferenceModel(best["backbone"], pretrained=True, feature_transform=best["feature_transform"]).eval()
             index, labels = as_index({s: train[(s, same, best["margin"])] for s in names if s != held})
-            fit_head_and_score(model, recipe_features(trunk_features, best["backbone"], best["feature_transform"]),
-                               index, labels, l2=best["l2"])
+            fit_head_and_score(model, chosen_features, index, labels, l2=best["l2"])
             others = [n for n in names if n != held]
             model.meta = {
                 "training_data": {"oracle_scenes": others, "renders_csv_sha256": [renders_sha[n] for n in others],
@@ -211,8 +211,7 @@ def main() -> None:
         return
     model = PreferenceModel(best["backbone"], pretrained=True, feature_transform=best["feature_transform"]).eval()
     index, labels = as_index({s: train[(s, same, best["margin"])] for s in names})
-    fit_head_and_score(model, recipe_features(trunk_features, best["backbone"], best["feature_transform"]), index,
-                       labels, l2=best["l2"])
+    fit_head_and_score(model, chosen_features, index, labels, l2=best["l2"])
     garden_pairs = read_usable_pairs([garden / "pairs.csv"])
     g_images, g_index, g_labels = index_pairs(garden_pairs)
     with torch.no_grad():

@@ -174,6 +174,11 @@ def _resnet34_backbone(pretrained: bool) -> Backbone:
     return Backbone(net, taps, [512], IMAGENET_MEAN, IMAGENET_STD)
 
 
+def _is_lpips(name: str) -> bool:
+    """`name` is an LPIPS trunk or several joined by "+"."""
+    return all(t in LPIPS_TRUNKS for t in name.split("+"))
+
+
 def check_recipe(name: str, transform: str = "none") -> None:
     """RecipeError (one line) unless `name` is one of BACKBONES and `transform` one of FEATURE_TRANSFORMS that
     it can take."""
@@ -181,7 +186,7 @@ def check_recipe(name: str, transform: str = "none") -> None:
         raise RecipeError(f"unknown backbone {name!r}; choose one of {', '.join(BACKBONES)}")
     if transform not in FEATURE_TRANSFORMS:
         raise RecipeError(f"unknown feature transform {transform!r}; choose one of {', '.join(FEATURE_TRANSFORMS)}")
-    if transform != "none" and not all(t in LPIPS_TRUNKS for t in name.split("+")):
+    if transform != "none" and not _is_lpips(name):
         raise RecipeError(f"feature transform {transform!r} works on the LPIPS trunks only; use --backbone "
                           "alexnet, vgg16 or alexnet+vgg16, or --feature-transform none")
 
@@ -189,7 +194,7 @@ def check_recipe(name: str, transform: str = "none") -> None:
 def build_backbone(name: str, pretrained: bool = True, transform: str = "none") -> nn.Module:
     """One of BACKBONES, with offline pretrained weights (or random init with pretrained=False)."""
     check_recipe(name, transform)
-    if all(t in LPIPS_TRUNKS for t in name.split("+")):
+    if _is_lpips(name):
         parts = [_lpips_backbone(LPIPS_TRUNKS[t], pretrained, transform) for t in name.split("+")]
         return parts[0] if len(parts) == 1 else ConcatBackbone(parts)
     if name == "efficientnet-lite0":
