@@ -46,6 +46,11 @@ device_env() {
   fi
   source scripts/device_env.sh
 }
+keep_carried() {
+  # here, not only in a sweep: what this call carried is gone after the next call that does not name it
+  mkdir -p "$data"; [ -d .devdata ] && cp -rn .devdata/. "$data/"
+  device_env
+}
 case $1 in
 start|parallel|then|commands)
   mode=run
@@ -55,10 +60,9 @@ start|parallel|then|commands)
   n=$(($(ls /tmp/plan-*.txt 2>/dev/null | wc -l) + 1))
   [ "$1" = then ] && after=$((n - 1))
   shift
-  mkdir -p "$bench" "$data"
+  mkdir -p "$bench"
   [ -d "$results" ] && cp -rn "$results"/. "$bench/" 2>/dev/null
-  [ -d .devdata ] && cp -rn .devdata/. "$data/"
-  device_env  # here, not only in the sweep: what this call carried is gone after the next call
+  keep_carried
   [ -f /tmp/sweep.start ] || touch /tmp/sweep.start
   printf '%s\n' "$@" > "/tmp/plan-$n.txt"
   # setsid: the sweep outlives this call (the device tool ends the call's own processes when it returns)
@@ -83,8 +87,7 @@ run|runpar)
   echo "=== plan finished $(date +%s)"
   ;;
 env)
-  mkdir -p "$data"; [ -d .devdata ] && cp -rn .devdata/. "$data/"
-  device_env
+  keep_carried
   ;;
 collect)
   if ! ls /tmp/sweep-*.log > /dev/null 2>&1; then
