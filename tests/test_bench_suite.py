@@ -14,7 +14,7 @@ from conftest import REPO, require_shared
 from hpgs_ns.bench import provenance
 from hpgs_ns.bench.executors import ExecutorConfig, LocalExecutor, SlurmExecutor, ray_gpus_per_run, runs_per_device
 from hpgs_ns.bench.report import (
-    comparison_plan, noise_table, paired_report, replace_section, throughput_table, write_report,
+    comparison_plan, markdown_table, noise_table, paired_report, replace_section, throughput_table, write_report,
 )
 from hpgs_ns.bench.runs import Bench, out_of_memory_hint, run_settings
 from hpgs_ns.bench.suites import Scene, SuiteError, load_suite, scene_from_folder
@@ -225,6 +225,17 @@ def test_the_report_ranks_only_where_the_interval_and_the_test_allow():
     assert "| s1 | 60 | 9 | 0, 1, 2 |" in text  # each scene's training and test views
 
 
+def test_a_protocol_without_random_still_gets_its_paired_comparisons():
+    # The HP-GS protocol was run with `blend` and `farthest` only: their paired interval must reach the README.
+    data = [r for r in rows({"farthest": 0.0, "blend": -0.1}, scenes=("s1", "s2", "s3"), protocol="hpgs")
+            if r["selector"] != "random"]
+    assert comparison_plan(data, "hpgs") == ([], [("farthest", "blend")])
+    text = paired_report(data)
+    assert "#### hpgs protocol" in text and "every comparison is Holm-adjusted" in text
+    assert "`farthest` and `blend` are indistinguishable here (`farthest` - `blend` +0.10 dB, 95% CI [+0.10, +0.10], 3 scenes)." in text
+    assert "over `random`, per scene" not in text
+
+
 def test_smoke_scenes_repeats_and_stress_copies_stay_out_of_the_comparison():
     data = rows({"farthest": 0.7})
     data += [{**r, "scene": "synthetic-occluded", "smoke": True, "test": {**r["test"], "psnr": r["test"]["psnr"] - 9 * (r["selector"] == "farthest")}}
@@ -250,6 +261,20 @@ def test_noise_and_throughput_tables():
                "wall_seconds": 900.0} for pid, n in ((11, 3),) * 3 + ((12, 4),) * 4]
     table = throughput_table(runs + shared)
     assert "| H100 | 7 | 7 | 900 | 28.0 | 900 |" in table and table.count("| H100 |") == 2
+
+
+def test_timing_columns_take_only_runs_that_had_the_gpu_to_themselves():
+    run = lambda sel, sweep, start, wall: {  # noqa: E731
+        "scene": "a", "protocol": "hpgs", "selector": sel, "seed": 0, "num_views_final": 27, "runs_per_gpu": 1,
+        "device": "NVIDIA H100 80GB HBM3", "sweep_id": sweep, "started_at": start, "wall_seconds": wall,
+        "selection_seconds": wall / 100, "test": {"psnr": 20.0, "ssim": 0.5, "lpips": 0.3}}
+    # `blend`'s run was a sweep of one, but another sweep's run shared the GPU with it: no solo time.
+    shared = [run("blend", "vm-9.1", 0.0, 1000.0), run("farthest", "vm-9.2", 500.0, 1000.0)]
+    assert "| a | hpgs | blend | 1 | 27 | 20.00 | 0.500 | 0.300 | H100 | – | – |" in markdown_table(shared)
+    alone = [run("blend", "vm-9.1", 0.0, 400.0), run("farthest", "vm-9.2", 500.0, 300.0)]
+    assert "| a | hpgs | blend | 1 | 27 | 20.00 | 0.500 | 0.300 | H100 | 400 | 4.0 |" in markdown_table(alone)
+    other_machine = [run("blend", "vm-9.1", 0.0, 1000.0), run("farthest", "gpu2-9.2", 500.0, 1000.0)]
+    assert "| H100 | 1000 | 10.0 |" in markdown_table(other_machine)
 
 
 def test_report_only_writes_the_readme_section(tmp_path):

@@ -73,14 +73,23 @@ def save_figure(fig, path: Path, rect=(0, 0, 1, 1)) -> Path:
     return Path(path)
 
 
-def solo(row: dict) -> bool:
-    """Whether a run had its GPU to itself (its wall and per-step times then mean what they say)."""
-    return int(row.get("runs_per_gpu", 1)) == 1
+def solo(row: dict, rows: Sequence[dict] = ()) -> bool:
+    """Whether a run had its GPU to itself (its wall and per-step times then mean what they say): one run per GPU,
+    and no run among `rows` on the same machine overlapping it in time (two sweeps can share one GPU)."""
+    if int(row.get("runs_per_gpu", 1)) != 1:
+        return False
+    timed = lambda r: r.get("sweep_id") and r.get("started_at") is not None and r.get("wall_seconds")  # noqa: E731
+    if not timed(row):
+        return True
+    host = lambda r: (short_device(r), str(r["sweep_id"]).rsplit("-", 1)[0])  # noqa: E731 (as throughput_table)
+    start, end = row["started_at"], row["started_at"] + row["wall_seconds"]
+    return not any(r is not row and timed(r) and host(r) == host(row)
+                   and r["started_at"] < end and start < r["started_at"] + r["wall_seconds"] for r in rows)
 
 
 def markdown_table(rows: List[dict]) -> str:
-    """Mean +- std over seeds per (scene, protocol, selector); times from solo runs only (one run per GPU; "–"
-    when every run of the row shared its GPU). Repeats (`--repeats`) are left out."""
+    """Mean +- std over seeds per (scene, protocol, selector); times from solo runs only (one run per GPU and no
+    other sweep's run beside it; "–" when every run of the row shared its GPU). Repeats (`--repeats`) are left out."""
     groups: Dict[Tuple[str, str, str], List[dict]] = {}
     for r in rows:
         if not r.get("repeat"):
@@ -97,7 +106,7 @@ def markdown_table(rows: List[dict]) -> str:
             digits = 2 if key == "psnr" else 3
             # One seed has no spread to show (a "± 0.00" would read as a measured one).
             cells.append(f"{m:.{digits}f} ± {s:.{digits}f}" if len(group) > 1 else f"{m:.{digits}f}")
-        alone = [g for g in group if solo(g)]
+        alone = [g for g in group if solo(g, rows)]
         wall = f"{_mean_std([g['wall_seconds'] for g in alone])[0]:.0f}" if alone else "–"
         selt = f"{_mean_std([g['selection_seconds'] for g in alone])[0]:.1f}" if alone else "–"
         views = group[0]["num_views_final"]
@@ -378,12 +387,16 @@ def paired_report(rows: List[dict]) -> str:
     for protocol in sorted({r["protocol"] for r in rows}):
         group = [r for r in rows if r["protocol"] == protocol]
         primary, secondary = comparison_plan(group, protocol)
-        if not primary:
+        if not primary and not secondary:
             continue
         out += [f"#### {protocol} protocol", "", scenes_table(group), ""]
-        versions = {(r.get("settings") or {}).get("code") for r in group} - {None}
-        if len(versions) > 1:
-            out += [f"These runs were made by {len(versions)} versions of the code (`--accept-code-change`).", ""]
+        if not primary:  # run without `random`: no gain over it to report, every pair Holm-adjusted
+            out += ["No `random` runs in this protocol: every comparison is Holm-adjusted.", ""]
+        # The code hash covers each selector's own files, so it is counted per selector
+        versions = max(len({(r.get("settings") or {}).get("code") for r in group if r["selector"] == sel} - {None})
+                       for sel in {r["selector"] for r in group})
+        if versions > 1:
+            out += [f"A selector's runs here were made by up to {versions} versions of the code (`--accept-code-change`).", ""]
         for sel, _ in [p for p in primary if p[1] == BASELINE]:
             gains = stats.paired_gains(group, sel, BASELINE, protocol, "psnr")
             out += [f"PSNR gain of `{sel}` over `random`, per scene (seeds paired):", "",
