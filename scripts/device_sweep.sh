@@ -14,7 +14,8 @@
 #                                                    # results under /tmp/extra, collected into $OUT/extra.tgz
 #   bash scripts/device_sweep.sh collect SECONDS     # wait until every group ends or SECONDS pass; results -> $OUT
 #   bash scripts/device_sweep.sh env                 # keep what this call carried (kernels, weights, scenes) in /tmp
-# Each start/parallel/then call adds a group (its own log, /tmp/sweep-N.log); groups started by `start` or
+# Each start/parallel/then call adds a group (its own log, /tmp/sweep-N.log; its own copy of the code, /tmp/src-N,
+# as the device tool rewrites the working tree on every call); groups started by `start` or
 # `parallel` begin at once beside running ones. Every sweep writes to /tmp/suite (seeded with
 # benchmarks/results/suite, so finished runs are skipped). `collect` packs every result JSON written since the
 # first group into $OUT/results.tgz (the device tool returns at most 8 files) and the logs into $OUT/sweep.log;
@@ -37,7 +38,8 @@ bench_one() {
   echo "=== end $(date +%s)"
 }
 device_env() {
-  # prelude once per machine: installing the wheels again under a running sweep would pull its modules away
+  # prelude once per machine: installing the wheels again under a running sweep would pull its modules away; so
+  # later calls set its exports here (.dev/prelude.sh comes with the workplace, read-only, exports and install in one)
   if [ -f /tmp/site/.prelude-done ]; then
     export PYTHONPATH=/tmp/site:$PWD PATH=/tmp/site/bin:$PATH TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=16 PYTHONUNBUFFERED=1
     export TORCH_FORCE_NO_WEIGHTS_ONLY_LOAD=1
@@ -65,8 +67,12 @@ start|parallel|then|commands)
   keep_carried
   [ -f /tmp/sweep.start ] || touch /tmp/sweep.start
   printf '%s\n' "$@" > "/tmp/plan-$n.txt"
+  # The group runs from its own copy of the code: the device tool rewrites the working tree on every call, and a
+  # run that imported hpgs_ns while it did failed (ModuleNotFoundError). Carried data stays out (.dev*, in /tmp).
+  src=/tmp/src-$n
+  mkdir -p "$src" && tar --exclude='./.dev*' --exclude=./.git -cf - . | tar -xf - -C "$src"
   # setsid: the sweep outlives this call (the device tool ends the call's own processes when it returns)
-  setsid nohup bash scripts/device_sweep.sh $mode "/tmp/plan-$n.txt" "$after" > "/tmp/sweep-$n.log" 2>&1 < /dev/null &
+  (cd "$src" && setsid nohup bash scripts/device_sweep.sh $mode "/tmp/plan-$n.txt" "$after" > "/tmp/sweep-$n.log" 2>&1 < /dev/null &)
   sleep 2
   echo "group $n: $(wc -l < "/tmp/plan-$n.txt") sweeps$([ "$after" -gt 0 ] && echo ", after group $after"); scenes in $data: $(ls "$data" | tr '\n' ' ')"
   ;;
