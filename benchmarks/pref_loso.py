@@ -45,7 +45,7 @@ sys.path.insert(0, str(REPO))
 
 from hpgs_ns.atomic_write import atomic_path, write_text_atomic  # noqa: E402
 from hpgs_ns.preference.evaluate import index_pairs, pair_accuracy_from_scores, raw_features_of  # noqa: E402
-from hpgs_ns.preference.model import PreferenceModel, transform_pooled  # noqa: E402
+from hpgs_ns.preference.model import BACKBONES, FEATURE_TRANSFORMS, PreferenceModel, transform_pooled  # noqa: E402
 from hpgs_ns.preference.pairs import read_usable_pairs  # noqa: E402
 from hpgs_ns.preference.train import fit_head_and_score  # noqa: E402
 
@@ -115,8 +115,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("scenes", type=Path, nargs="+", help="`hpgs collect` output folders, one per scene")
     ap.add_argument("--garden", type=Path, default=None, help="hpgs-pairs-garden folder (default: ../shared/data)")
-    ap.add_argument("--backbones", nargs="*", default=["alexnet", "vgg16", "alexnet+vgg16"])
-    ap.add_argument("--transforms", nargs="*", default=["none", "sqrt-l2"], help="per-trunk feature transforms")
+    ap.add_argument("--backbones", nargs="*", default=["alexnet", "vgg16", "alexnet+vgg16"], choices=BACKBONES)
+    ap.add_argument("--transforms", nargs="*", default=list(FEATURE_TRANSFORMS), choices=FEATURE_TRANSFORMS,
+                    help="per-trunk feature transforms")
     ap.add_argument("--l2", type=float, nargs="*", default=[0.1, 0.3, 1.0])
     ap.add_argument("--margins", type=float, nargs="*", default=[0.0, 0.02, 0.05],
                     help="least LPIPS difference of a training pair")

