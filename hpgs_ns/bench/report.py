@@ -73,17 +73,25 @@ def save_figure(fig, path: Path, rect=(0, 0, 1, 1)) -> Path:
     return Path(path)
 
 
+def _timed(row: dict) -> bool:
+    """Whether a run recorded when it ran, and on which machine (its sweep id)."""
+    return bool(row.get("sweep_id") and row.get("started_at") is not None and row.get("wall_seconds"))
+
+
+def _machine(row: dict) -> Tuple[str, str]:
+    """(device, host of the sweep): runs of two sweeps on one machine share its GPU."""
+    return short_device(row), str(row["sweep_id"]).rsplit("-", 1)[0]
+
+
 def solo(row: dict, rows: Sequence[dict] = ()) -> bool:
     """Whether a run had its GPU to itself (its wall and per-step times then mean what they say): one run per GPU,
     and no run among `rows` on the same machine overlapping it in time (two sweeps can share one GPU)."""
     if int(row.get("runs_per_gpu", 1)) != 1:
         return False
-    timed = lambda r: r.get("sweep_id") and r.get("started_at") is not None and r.get("wall_seconds")  # noqa: E731
-    if not timed(row):
+    if not _timed(row):
         return True
-    host = lambda r: (short_device(r), str(r["sweep_id"]).rsplit("-", 1)[0])  # noqa: E731 (as throughput_table)
     start, end = row["started_at"], row["started_at"] + row["wall_seconds"]
-    return not any(r is not row and timed(r) and host(r) == host(row)
+    return not any(r is not row and _timed(r) and _machine(r) == _machine(row)
                    and r["started_at"] < end and start < r["started_at"] + r["wall_seconds"] for r in rows)
 
 
@@ -470,14 +478,13 @@ def throughput_table(rows: List[dict]) -> str:
     """Runs per hour per device against how many ran at once, over each busy span of one machine (runs whose
     times overlap, whichever sweep started them: two sweeps sharing a GPU count together); "" without
     timestamps. "At once" is measured from the runs' start and end times, not read from `--runs-per-gpu`."""
-    timed = [r for r in rows if r.get("sweep_id") and r.get("started_at") and r.get("wall_seconds")]
+    timed = [r for r in rows if _timed(r)]
     if not timed:
         return ""
-    machine = lambda r: (short_device(r), str(r["sweep_id"]).rsplit("-", 1)[0])  # noqa: E731 (host of the sweep)
     spans: List[List[dict]] = []
     end = 0.0  # when the last span's latest run ended
-    for r in sorted(timed, key=lambda r: (machine(r), r["started_at"])):
-        if spans and machine(spans[-1][0]) == machine(r) and r["started_at"] < end:
+    for r in sorted(timed, key=lambda r: (_machine(r), r["started_at"])):
+        if spans and _machine(spans[-1][0]) == _machine(r) and r["started_at"] < end:
             spans[-1].append(r)
         else:
             spans.append([r])
