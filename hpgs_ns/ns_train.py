@@ -10,6 +10,7 @@ import sys
 from pathlib import Path
 from typing import List, Mapping, Optional, Sequence, Union
 
+SELECTION_PREFIX = "pipeline.datamanager."  # where the selection loop's options are set on the command line
 Value = Union[str, int, float, bool, Path, Sequence[Union[str, int, float]]]
 
 
@@ -20,6 +21,7 @@ def ns_train_command(
     timestamp: str,
     steps: int,
     datamanager: Optional[Mapping[str, Value]] = None,
+    selection: Optional[Mapping[str, Value]] = None,
     model: Optional[Mapping[str, Value]] = None,
     trainer: Optional[Mapping[str, Value]] = None,
     extra: Sequence[str] = (),
@@ -31,7 +33,8 @@ def ns_train_command(
     never exits), one checkpoint at the end and no evaluation during training.
 
     `datamanager`, `model` and `trainer` map option names (with dashes or underscores) to values:
-    `{"num-initial-views": 6}` -> `--pipeline.datamanager.num-initial-views 6`; a sequence value gives several
+    `{"num-initial-views": 6}` -> `--pipeline.datamanager.num-initial-views 6`; `selection` holds the selection
+    loop's options (`{"selector": "fisher"}` -> `--pipeline.selection.selector fisher`); a sequence value gives several
     words, a bool `True`/`False`. `extra` is appended as given. The dataparser subcommand (default
     `mipnerf360`) comes last, with its options after it, as tyro reads them: `mipnerf360 --downscale-factor 2`."""
     args = [
@@ -41,7 +44,8 @@ def ns_train_command(
         "--max-num-iterations", str(steps), "--steps-per-save", str(steps),
         "--steps-per-eval-all-images", str(10 * steps), "--steps-per-eval-image", str(10 * steps),
     ]
-    for prefix, options in (("", trainer), ("pipeline.datamanager.", datamanager), ("pipeline.model.", model)):
+    for prefix, options in (("", trainer), ("pipeline.datamanager.", datamanager), (SELECTION_PREFIX, selection),
+                            ("pipeline.model.", model)):
         for name, value in (options or {}).items():
             args += [f"--{prefix}{name.replace('_', '-')}", *_words(value)]
     args += list(extra)
