@@ -10,7 +10,7 @@ scene out*: the numbers reported for it are on the scene it never saw.
     python benchmarks/candidate_scores.py benchmarks/results/suite --out candidate_scores.json
 
 Is the oracle the right target? Where a logged run has its test PSNR at every round step and an `initial`
-reference (`hpgs_ns.early_stop.view_gains`), each round's chosen view is set against what that round gained in
+reference (`hpgs_ns.bench.gain_fit.view_gains`), each round's chosen view is set against what that round gained in
 test PSNR (over the reference): the Spearman correlation of the pick's render-error percentile with the gain.
 
 `--selectors farthest hpgs` restricts the combination to those scores and prints its weights fitted on every
@@ -24,6 +24,7 @@ import argparse
 import gzip
 import itertools
 import json
+import re
 from pathlib import Path
 from typing import Dict, List
 
@@ -36,9 +37,10 @@ def load_rounds(folder: Path) -> List[dict]:
     paths = sorted(folder.glob("*/*/*/*-candidates.jsonl.gz")) + sorted(folder.glob("*/*/*/*-candidates.jsonl"))
     for path in paths:
         scene = path.relative_to(folder).parts[0]
-        result = path.with_name(path.name.split("-candidates.jsonl")[0] + ".json")
-        run = json.loads(result.read_text()) if result.is_file() else {}  # a run killed mid-way has no result
-        which = {"scene": scene, "seed": run.get("seed"), "repeat": run.get("repeat", 0)}
+        stem = path.name.split("-candidates.jsonl")[0]  # seed<k> or seed<k>-repeat<r>, as its result is named
+        match = re.fullmatch(r"seed(\d+)(?:-repeat(\d+))?", stem)
+        done = match is not None and path.with_name(stem + ".json").is_file()  # a run killed mid-way has no result
+        which = {"scene": scene, "seed": int(match[1]) if done else None, "repeat": int(match[2] or 0) if done else 0}
         text = gzip.decompress(path.read_bytes()).decode() if path.suffix == ".gz" else path.read_text()
         for line in text.splitlines():
             if line.strip():
@@ -48,15 +50,15 @@ def load_rounds(folder: Path) -> List[dict]:
 
 def oracle_vs_gain(rounds: List[dict], folder: Path) -> Dict[str, object]:
     """Spearman, over rounds, of the chosen view's render-error percentile with the round's test-PSNR gain."""
-    from hpgs_ns.bench.report import load_results
-    from hpgs_ns.early_stop import view_gains
+    from hpgs_ns.bench.gain_fit import view_gains
+    from hpgs_ns.bench.results import load_results
 
     gains = {}
     for v in view_gains(load_results(folder)):
-        steps = [p["step"] for p in v["run"]["psnr_per_round"]]
-        key = (v["scene"], v["selector"], v["run"]["seed"], v["run"].get("repeat", 0))
-        for k, step in enumerate(steps[: len(v["G"]) - 1]):
-            gains[key + (step,)] = v["G"][k + 1] - v["G"][k]
+        steps = [p.step for p in v.run.psnr_per_round]
+        key = (v.scene, v.selector, v.run.seed, v.run.repeat)
+        for k, step in enumerate(steps[: len(v.G) - 1]):
+            gains[key + (step,)] = v.G[k + 1] - v.G[k]
     pairs: Dict[str, List] = {}
     for r in rounds:
         gain = gains.get((r["scene"], r["selector"], r["seed"], r["repeat"], r["step"]))

@@ -13,8 +13,8 @@ import argparse
 import json
 from pathlib import Path
 
-from hpgs_ns.bench.report import load_results
-from hpgs_ns.early_stop import early_stop_curve, fit_gain_model
+from hpgs_ns.bench.gain_fit import early_stop_curve, fit_gain_model
+from hpgs_ns.bench.results import load_results
 
 THRESHOLDS = (-0.5, -0.25, 0.0, 0.05, 0.1, 0.15, 0.2, 0.25, 0.3, 0.5, 1.0)
 
@@ -26,7 +26,7 @@ def main() -> None:
     ap.add_argument("--plot", type=Path, default=None)
     ap.add_argument("--write-model", type=Path, default=None)
     args = ap.parse_args()
-    rows = [r for r in load_results(args.results) if not r.get("smoke") and not r.get("repeat")]
+    rows = [r for r in load_results(args.results) if not r.smoke and not r.repeat]
     curve = early_stop_curve(rows, THRESHOLDS)
     model = fit_gain_model(rows)
     print(f"{curve[0]['runs']} runs, scenes {', '.join(model.fitted_on)} (each judged with a model fitted on the others)")

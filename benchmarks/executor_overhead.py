@@ -32,7 +32,7 @@ def dispatch(executor, items: int) -> float:
 
 
 def sweep_seconds(scene: Path, out: Path, runs: int, cluster) -> dict:
-    from hpgs_ns.bench.report import load_results
+    from hpgs_ns.bench.results import load_results
     from hpgs_ns.bench.runs import Bench
 
     bench = Bench(
@@ -44,8 +44,8 @@ def sweep_seconds(scene: Path, out: Path, runs: int, cluster) -> dict:
     bench.run_all()
     elapsed = time.perf_counter() - start
     rows = load_results(out)
-    return {"seconds_per_run": elapsed / len(rows), "train_seconds_per_run": sum(r["wall_seconds"] for r in rows) / len(rows),
-            "psnr": {r["selector"]: r["test"]["psnr"] for r in rows}}
+    return {"seconds_per_run": elapsed / len(rows), "train_seconds_per_run": sum(r.timing.wall_seconds for r in rows) / len(rows),
+            "psnr": {r.selector: r.test.psnr for r in rows}}
 
 
 def main() -> None:

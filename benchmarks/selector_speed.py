@@ -17,6 +17,8 @@ from pathlib import Path
 
 import torch
 
+from hpgs_ns.ns_train import SELECTION_PREFIX
+
 
 def main() -> None:
     ap = argparse.ArgumentParser()
@@ -35,9 +37,9 @@ def main() -> None:
             "--output-dir", str(args.out / "runs"), "--experiment-name", "speed", "--timestamp", sel,
             "--vis", "tensorboard", "--max-num-iterations", str(args.steps + 1), "--steps-per-save", str(10 * args.steps),
             "--steps-per-eval-all-images", str(10 * args.steps), "--steps-per-eval-image", str(10 * args.steps),
-            "--pipeline.datamanager.select-every", str(args.steps // args.rounds),
-            "--pipeline.datamanager.max-rounds", str(args.rounds),
-            "--pipeline.datamanager.selector", sel,
+            f"--{SELECTION_PREFIX}select-every", str(args.steps // args.rounds),
+            f"--{SELECTION_PREFIX}max-rounds", str(args.rounds),
+            f"--{SELECTION_PREFIX}selector", sel,
             *args.extra.split(), "mipnerf360", "--downscale-factor", str(args.downscale_factor),
         ]
         start = time.perf_counter()

@@ -21,17 +21,45 @@ import json
 import shlex
 import subprocess
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
-from typing import Dict, List, Sequence
+from typing import Dict, List, Optional, Sequence
 
 import torch
 
 from hpgs_ns.atomic_write import write_json_atomic, write_text_atomic
 from hpgs_ns.bench import stats
+from hpgs_ns.bench.results import Metrics
 from hpgs_ns.bench.suites import Scene, load_suite
 from hpgs_ns.dataparser import DATAPARSERS, view_name
 from hpgs_ns.ns_train import ns_train_command
 from hpgs_ns.suggest import candidates as cand
+
+
+@dataclass(frozen=True)
+class CheckRun:
+    """One run of the check (its JSON: OUT/<scene>/block<k>-seed<s>-<selector>.json). `seed` is
+    block * 1000 + seed, so that `stats` pairs runs by (scene, block, seed); `selector` "none" is the base run."""
+
+    scene: str
+    protocol: str
+    selector: str
+    seed: int
+    block: int
+    block_views: int
+    test: Metrics
+    photos_taken: List[str] = field(default_factory=list)
+    withheld: str = "arc"  # the first runs withheld arcs only
+    candidates: Optional[str] = None
+    config: str = ""
+    command: str = ""
+
+    def to_dict(self) -> dict:
+        return {**asdict(self), "test": {k: v for k, v in asdict(self.test).items() if v is not None}}
+
+    @classmethod
+    def from_dict(cls, data: dict) -> CheckRun:
+        return cls(**{**{f.name: data[f.name] for f in fields(cls) if f.name in data}, "test": Metrics.from_dict(data["test"])})
 
 
 def training_cameras(scene: Scene):
@@ -120,8 +148,8 @@ def train(scene: Scene, out: Path, name: str, exclude: List[str], seed: int, arg
     cmd = ns_train_command(
         scene.path, run_root, scene.name, name, args.steps,
         trainer={"machine.seed": seed, "final-eval-json": folder / "eval.json"},
-        datamanager={"num-initial-views": 100000, "max-rounds": 0, "seed": seed,
-                     **({"exclude-views": exclude} if exclude else {})},
+        datamanager={"num-initial-views": 100000, "seed": seed, **({"exclude-views": exclude} if exclude else {})},
+        selection={"max-rounds": 0},
         model={"rasterizer": args.rasterizer}, extra=shlex.split(args.extra_args),
         dataparser=scene.dataparser, dataparser_options=scene.option_dict(),
     )
@@ -135,7 +163,7 @@ def train(scene: Scene, out: Path, name: str, exclude: List[str], seed: int, arg
 
 
 def check_block(scene: Scene, seed: int, k: int, block: List[int], names: List[str], args,
-                withheld_as: str = "arc") -> List[dict]:
+                withheld_as: str = "arc") -> List[CheckRun]:
     from hpgs_ns.suggest.command import Suggest, load_run, suggest
 
     out = args.out
@@ -152,35 +180,35 @@ def check_block(scene: Scene, seed: int, k: int, block: List[int], names: List[s
                                          run.pipeline.datamanager.train_dataset.cameras.camera_to_worlds[block], block)
     del run
 
-    def final(selector: str) -> dict:
+    def final(selector: str) -> CheckRun:
         taken = picks[selector]
         result = train(scene, out, f"{label}-{selector}", [names[i] for i in block if i not in taken], seed, args)
-        return {"scene": scene.name, "protocol": "withheld-arc", "selector": selector, "seed": k * 1000 + seed,
-                "block": k, "withheld": withheld_as, "candidates": candidates,
-                "block_views": len(block), "photos_taken": [names[i] for i in taken], **result}
+        return CheckRun(scene.name, "withheld-arc", selector, k * 1000 + seed, k, len(block),
+                        Metrics.from_dict(result["test"]), [names[i] for i in taken], withheld_as, candidates,
+                        result["config"], result["command"])
 
     with ThreadPoolExecutor(args.parallel) as pool:
         rows = list(pool.map(final, args.selectors))
-    rows.append({"scene": scene.name, "protocol": "withheld-arc", "selector": "none", "seed": k * 1000 + seed, "block": k,
-                 "withheld": withheld_as, "block_views": len(block), "photos_taken": [], **base})
+    rows.append(CheckRun(scene.name, "withheld-arc", "none", k * 1000 + seed, k, len(block),
+                         Metrics.from_dict(base["test"]), [], withheld_as, None, base["config"], base["command"]))
     for r in rows:
-        write_json_atomic(out / scene.name / f"{label}-{r['selector']}.json", r)
+        write_json_atomic(out / scene.name / f"{label}-{r.selector}.json", r.to_dict())
     return rows
 
 
-def report(rows: List[dict]) -> str:
+def report(rows: List[CheckRun]) -> str:
     """Gains of each selector's photos over farthest's and random's, paired by (scene, block, seed)."""
-    selectors = sorted({r["selector"] for r in rows} - {"none"})
+    selectors = sorted({r.selector for r in rows} - {"none"})
     pairs: List = []
     for b in ("farthest", "random"):
         pairs += [(s, b) for s in selectors if s != b and b in selectors and (b, s) not in pairs]
     comparisons = stats.compare(rows, "withheld-arc", pairs, metric="psnr", primary=[p for p in pairs if p[1] == "farthest"])
     # What taking any of the arc's photos is worth: a separate family, so it does not dilute the one above.
     gains = stats.compare(rows, "withheld-arc", [(s, "none") for s in selectors], metric="psnr", primary=[])
-    cells = sorted({(r["scene"], r["block"], r["seed"]) for r in rows})
-    psnr = {(r["scene"], r["block"], r["seed"], r["selector"]): r["test"]["psnr"] for r in rows}
-    views = {(r["scene"], r["block"], r["seed"]): r["block_views"] for r in rows}
-    kind = {(r["scene"], r["block"], r["seed"]): r.get("withheld", "arc") for r in rows}
+    cells = sorted({(r.scene, r.block, r.seed) for r in rows})
+    psnr = {(r.scene, r.block, r.seed, r.selector): r.test.psnr for r in rows}
+    views = {(r.scene, r.block, r.seed): r.block_views for r in rows}
+    kind = {(r.scene, r.block, r.seed): r.withheld for r in rows}
     head = ["scene", "withheld", "seed", "photos withheld", "none"] + selectors
     table = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for c in cells:
@@ -219,7 +247,7 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/suggest"))
     args = ap.parse_args()
     if args.report_only:
-        rows = [json.loads(p.read_text()) for p in sorted(args.out.glob("*/block*-seed*.json"))]
+        rows = [CheckRun.from_dict(json.loads(p.read_text())) for p in sorted(args.out.glob("*/block*-seed*.json"))]
         if not rows:
             raise SystemExit(f"suggest_check: no block*-seed*.json under {args.out}/<scene>/; run the check first")
         text = report(rows)
@@ -245,7 +273,7 @@ def main() -> None:
     text = report(rows)
     write_text_atomic(args.out / "suggest_check.md", text)
     print(text)
-    cells = {(r["scene"], r["seed"]) for r in rows}
+    cells = {(r.scene, r.seed) for r in rows}
     print(f"{len(rows)} runs in {len(cells)} (scene, block, seed) cells -> {args.out}")
 
 

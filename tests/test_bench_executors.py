@@ -6,7 +6,6 @@ repeated runs), so Ray and submitit results must equal the local ones exactly; o
 
 from __future__ import annotations
 
-import json
 import os
 import shutil
 import signal
@@ -18,9 +17,11 @@ from pathlib import Path
 
 import pytest
 
-from hpgs_ns.bench.report import load_results, markdown_table
-from hpgs_ns.bench.runs import Bench
 from hpgs_ns.bench.executors import ExecutorConfig, LocalExecutor, RayExecutor, SlurmExecutor
+from hpgs_ns.bench.report import load_results, markdown_table
+from hpgs_ns.bench.results import RunResult
+from hpgs_ns.bench.runs import Bench
+from hpgs_ns.errors import UserError
 
 REPO = Path(__file__).resolve().parent.parent
 # 4 runs (2 selectors x 2 seeds, no reference rows) of 15 CPU steps on the 64x48 ring scene.
@@ -47,16 +48,16 @@ def env() -> dict:
 
 
 def by_run(out: Path) -> dict:
-    return {(r["selector"], r["seed"]): r for r in load_results(out)}
+    return {(r.selector, r.seed): r for r in load_results(out)}
 
 
 def assert_same_numbers(out: Path, reference: Path) -> None:
     runs, ref = by_run(out), by_run(reference)
     assert runs.keys() == ref.keys() and len(runs) == 4
     for key, r in runs.items():
-        assert r["test"]["psnr"] == ref[key]["test"]["psnr"], key  # bit-identical, no tolerance needed
-        assert (r["test"]["ssim"], r["test"]["lpips"]) == (ref[key]["test"]["ssim"], ref[key]["test"]["lpips"]), key
-        assert [r[k] for k in SAME] == [ref[key][k] for k in SAME], key
+        assert r.test.psnr == ref[key].test.psnr, key  # bit-identical, no tolerance needed
+        assert (r.test.ssim, r.test.lpips) == (ref[key].test.ssim, ref[key].test.lpips), key
+        assert [getattr(r, k) for k in SAME] == [getattr(ref[key], k) for k in SAME], key
     # The markdown table is identical but for its two timing columns.
     untimed = lambda table: [line.rsplit("|", 3)[0] for line in table.splitlines()]  # noqa: E731
     assert untimed(markdown_table(load_results(out))) == untimed(markdown_table(load_results(reference)))
@@ -68,16 +69,16 @@ def local_results(tiny_scene, tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("local") / "bench"
     Bench(scenes=[tiny_scene], out=out, cluster=ExecutorConfig(local_workers=2), **TINY).run_all()
     rows = load_results(out)
-    assert len(rows) == 4 and len({r["test"]["psnr"] for r in rows}) == 4  # 4 distinct runs, not one copied
+    assert len(rows) == 4 and len({r.test.psnr for r in rows}) == 4  # 4 distinct runs, not one copied
     return out
 
 
 def test_missing_packages_say_how_to_install(monkeypatch):
     monkeypatch.setitem(sys.modules, "ray", None)  # makes `import ray` raise ImportError
     monkeypatch.setitem(sys.modules, "submitit", None)
-    with pytest.raises(SystemExit, match=r"^--executor ray needs Ray: pip install 'hpgs-ns\[cluster\]'$"):
+    with pytest.raises(UserError, match=r"^hpgs bench: --executor ray needs Ray: pip install 'hpgs-ns\[cluster\]'$"):
         RayExecutor(ExecutorConfig(executor="ray"))
-    with pytest.raises(SystemExit, match=r"^--executor slurm needs submitit: pip install 'hpgs-ns\[cluster\]'$"):
+    with pytest.raises(UserError, match=r"^hpgs bench: --executor slurm needs submitit: pip install 'hpgs-ns\[cluster\]'$"):
         SlurmExecutor(ExecutorConfig(executor="slurm"), Path("unused"))
 
 
@@ -129,7 +130,8 @@ def test_ray_sweep_matches_local_and_resumes_after_the_driver_is_killed(local_re
     assert f"{4 - len(finished)} runs to do (ray, 1 per device)" in rerun.stderr
     assert {p: p.stat().st_mtime_ns for p in finished} == finished  # finished runs were not run again
     assert_same_numbers(out, local_results)
-    assert (out / "table.md").read_text() == markdown_table(load_results(out))
+    table = (out / "table.md").read_text()  # rebuilt after the resumed sweep: both seeds of both selectors
+    assert f"| {tiny_scene.name} | hpgs | random | 2 |" in table and f"| {tiny_scene.name} | hpgs | farthest | 2 |" in table
 
 
 def test_slurm_path_through_submitit_local_executor(local_results, tiny_scene, tmp_path):
@@ -144,15 +146,16 @@ def test_slurm_path_through_submitit_local_executor(local_results, tiny_scene, t
         executor="slurm", slurm_cluster="local", slurm_gpus_per_run=0, slurm_cpus_per_run=1, slurm_time_min=10
     )
     bench = Bench(scenes=[tiny_scene], out=out, cluster=cluster, **{**TINY, "selectors": ["random", "farthest", "nope"], "seeds": [1]})
-    with pytest.raises(SystemExit) as failed:
+    with pytest.raises(UserError) as failed:
         bench.run_all()
     message = str(failed.value)
+    assert "\n" not in message
     assert "1 of 2 runs failed" in message and f"{tiny_scene.name}/hpgs/nope/seed1 (log: " in message
     assert (out / "_runs" / f"{tiny_scene.name}-hpgs-nope-seed1.log").resolve().as_posix() in message
     assert done.stat().st_mtime_ns == before  # skipped, not submitted
-    got = json.loads((out / tiny_scene.name / "hpgs" / "farthest" / "seed1.json").read_text())
-    ref = json.loads((local_results / tiny_scene.name / "hpgs" / "farthest" / "seed1.json").read_text())
+    got = RunResult.from_json(out / tiny_scene.name / "hpgs" / "farthest" / "seed1.json")
+    ref = RunResult.from_json(local_results / tiny_scene.name / "hpgs" / "farthest" / "seed1.json")
     metrics = ("psnr", "psnr_std", "ssim", "lpips")
-    assert [got["test"][k] for k in metrics] == [ref["test"][k] for k in metrics]
-    assert [got[k] for k in SAME] == [ref[k] for k in SAME]
+    assert [getattr(got.test, k) for k in metrics] == [getattr(ref.test, k) for k in metrics]
+    assert [getattr(got, k) for k in SAME] == [getattr(ref, k) for k in SAME]
     assert list((out / "_submitit").glob("*/*_result.pkl")), "submitit wrote no job results"

@@ -11,7 +11,9 @@ from typing import Dict, List, Tuple
 
 import numpy as np
 import pytest
+from test_bench_results import make_result
 
+from hpgs_ns.bench.results import RunResult
 from hpgs_ns.bench.stats import (
     compare,
     comparison_table,
@@ -28,13 +30,12 @@ SCENES = [f"scene{i}" for i in range(6)]
 SEEDS = [0, 1, 2]
 
 
-def rows_for(selector: str, psnr: Dict[Tuple[str, int], float], protocol: str = "hpgs", lpips=None) -> List[dict]:
-    """One run dict per (scene, seed); SSIM follows PSNR, LPIPS given or derived from it."""
+def rows_for(selector: str, psnr: Dict[Tuple[str, int], float], protocol: str = "hpgs", lpips=None) -> List[RunResult]:
+    """One run per (scene, seed); SSIM follows PSNR, LPIPS given or derived from it."""
     out = []
     for (scene, seed), value in psnr.items():
         lp = lpips[scene, seed] if lpips is not None else 0.5 - value / 100
-        out.append({"scene": scene, "protocol": protocol, "selector": selector, "seed": seed,
-                    "test": {"psnr": value, "ssim": value / 40, "lpips": lp}})
+        out.append(make_result(scene, protocol, selector, seed, value, value / 40, lp))
     return out
 
 

@@ -3,21 +3,30 @@ resume, and the paired report (which selector to use) built from the per-run JSO
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import threading
 import time
 from types import SimpleNamespace
 
 import pytest
-
 from conftest import REPO, require_shared
+from test_bench_results import make_result
+
 from hpgs_ns.bench import provenance
 from hpgs_ns.bench.executors import ExecutorConfig, LocalExecutor, SlurmExecutor, ray_gpus_per_run, runs_per_device
 from hpgs_ns.bench.report import (
-    comparison_plan, markdown_table, noise_table, paired_report, replace_section, throughput_table, write_report,
+    comparison_plan,
+    markdown_table,
+    noise_table,
+    paired_report,
+    throughput_table,
+    write_report,
 )
 from hpgs_ns.bench.runs import Bench, out_of_memory_hint, run_settings
 from hpgs_ns.bench.suites import Scene, SuiteError, load_suite, scene_from_folder
+from hpgs_ns.errors import UserError
+from hpgs_ns.ns_train import SELECTION_PREFIX
 
 # --- suites ------------------------------------------------------------------------------------------------
 
@@ -100,7 +109,7 @@ def test_runs_that_ran_out_of_gpu_memory_get_the_fix_named():
     errors = ["training failed (...):\ntorch.OutOfMemoryError: CUDA out of memory. Tried to allocate 94.00 MiB.",
               "training failed (...):\nValueError: no images", "RuntimeError: CUDA out of memory."]
     hint = out_of_memory_hint(errors, 4)
-    assert hint.startswith("\n2 of them ran out of GPU memory") and "--runs-per-gpu (now 4;" in hint
+    assert hint.startswith("; 2 of them ran out of GPU memory") and "--runs-per-gpu (now 4;" in hint
     assert out_of_memory_hint(errors[1:2], 4) == ""
 
 
@@ -155,7 +164,7 @@ def test_the_code_hash_follows_a_selectors_own_files_only(monkeypatch, tmp_path)
     before = {s: provenance.code_hash(s) for s in ("random", "fisher", "hpgs", None)}
     assert len(set(before.values())) == 4
     (copy / "selectors" / "fisher.py").write_text((copy / "selectors" / "fisher.py").read_text() + "\n# changed\n")
-    (copy / "bench" / "report.py").write_text("# reporting cannot change a run\n")
+    (copy / "bench" / "report" / "tables.py").write_text("# reporting cannot change a run\n")
     after = {s: provenance.code_hash(s) for s in ("random", "fisher", "hpgs", None)}
     assert [s for s in before if before[s] != after[s]] == ["fisher"]
     (copy / "model.py").write_text((copy / "model.py").read_text() + "\n# changed\n")
@@ -174,22 +183,22 @@ def test_resuming_with_another_preference_model_or_option_is_refused(tmp_path):
     assert settings["selector_options"]["model"] == str(model) and settings["preference_model"] == provenance.file_hash(model)
     assert settings["code"] == provenance.code_hash("hpgs")
     path = job.result_path(bench.out)
-    path.parent.mkdir(parents=True)
-    path.write_text(json.dumps({"settings": settings}))
+    make_result("scene", "hpgs", "hpgs", settings=settings).to_json(path)
     bench.run_all()  # same settings: nothing to do
     model.write_bytes(b"weights 2")
-    with pytest.raises(SystemExit, match=r"seed0.json was made with other settings \(preference_model\); pass another --out"):
+    with pytest.raises(UserError, match=r"seed0.json was made with other settings \(preference_model\); pass another --out"):
         bench.run_all()
     model.write_bytes(b"weights 1")
-    path.write_text(json.dumps({"settings": {**settings, "code": "another"}}))
-    with pytest.raises(SystemExit, match=r"other settings \(code\); .* or --accept-code-change if"):
+    make_result("scene", "hpgs", "hpgs", settings={**settings, "code": "another"}).to_json(path)
+    with pytest.raises(UserError, match=r"other settings \(code\); .* or --accept-code-change if"):
         bench.run_all()
     bench.accept_code_change = True
     bench.run_all()  # kept: only the code differs, and that was accepted
-    path.write_text(json.dumps({"settings": settings}))
-    bench.extra_args += " --pipeline.datamanager.hpgs.batch-size 4"
-    with pytest.raises(SystemExit, match=r"other settings \(extra_args, selector_options\)"):
+    make_result("scene", "hpgs", "hpgs", settings=settings).to_json(path)
+    bench.extra_args += " --pipeline.selection.hpgs.batch-size 4"  # the new spelling counts as the old one did
+    with pytest.raises(UserError, match=r"other settings \(extra_args, selector_options\)"):
         bench.run_all()
+    assert run_settings(bench, job)["selector_options"]["batch_size"] == 4
 
 
 # --- the paired report -------------------------------------------------------------------------------------
@@ -203,9 +212,8 @@ def rows(gains: dict, scenes=("s1", "s2", "s3", "s4", "s5", "s6"), seeds=(0, 1, 
             base = 20.0 + 0.37 * i - 0.5 * seed
             for sel, gain in {"random": 0.0, **gains}.items():
                 g = gain(scene) if callable(gain) else gain
-                out.append({"scene": scene, "protocol": protocol, "selector": sel, "seed": seed, "num_test_views": 9,
-                            "num_train_views": 60, "num_views_final": 20,
-                            "test": {"psnr": base + g, "ssim": 0.6 + g / 100, "lpips": 0.3 - g / 100}})
+                out.append(make_result(scene, protocol, sel, seed, base + g, 0.6 + g / 100, 0.3 - g / 100,
+                                       num_test_views=9, num_train_views=60, num_views_final=20))
     return out
 
 
@@ -228,7 +236,7 @@ def test_the_report_ranks_only_where_the_interval_and_the_test_allow():
 def test_a_protocol_without_random_still_gets_its_paired_comparisons():
     # The HP-GS protocol was run with `blend` and `farthest` only: their paired interval must reach the README.
     data = [r for r in rows({"farthest": 0.0, "blend": -0.1}, scenes=("s1", "s2", "s3"), protocol="hpgs")
-            if r["selector"] != "random"]
+            if r.selector != "random"]
     assert comparison_plan(data, "hpgs") == ([], [("farthest", "blend")])
     text = paired_report(data)
     assert "#### hpgs protocol" in text and "every comparison is Holm-adjusted" in text
@@ -238,36 +246,39 @@ def test_a_protocol_without_random_still_gets_its_paired_comparisons():
 
 def test_smoke_scenes_repeats_and_stress_copies_stay_out_of_the_comparison():
     data = rows({"farthest": 0.7})
-    data += [{**r, "scene": "synthetic-occluded", "smoke": True, "test": {**r["test"], "psnr": r["test"]["psnr"] - 9 * (r["selector"] == "farthest")}}
+    # a smoke scene where farthest loses 9 dB, repeats at 0 dB, a stress copy where it loses 5 dB: none counts
+    data += [dataclasses.replace(r, scene="synthetic-occluded", smoke=True,
+                                 test=dataclasses.replace(r.test, psnr=r.test.psnr - 9 * (r.selector == "farthest")))
              for r in rows({"farthest": 0.0}, scenes=("x",))]
-    data += [{**r, "repeat": 1, "test": {**r["test"], "psnr": 0.0}} for r in rows({"farthest": 0.7})]
+    data += [dataclasses.replace(r, repeat=1, test=dataclasses.replace(r.test, psnr=0.0)) for r in rows({"farthest": 0.7})]
+    data += [dataclasses.replace(r, scene="s1+exposure") for r in rows({"farthest": -5.0}, scenes=("s1",))]
     assert "+0.70 dB, 95% CI [+0.70, +0.70], 6 scenes" in paired_report(data)
 
 
 def test_noise_and_throughput_tables():
-    data = [{"scene": "a", "protocol": "p", "selector": "random", "seed": s, "repeat": r, "test": {"psnr": 20 + s + 0.1 * r}}
-            for s in (0, 1, 2) for r in (0, 1)]
+    # SD over repeats 20, 20.1 of each seed: 0.0707; over seeds 20, 21, 22: 1.00
+    data = [make_result("a", "p", "random", s, 20 + s + 0.1 * r, repeat=r) for s in (0, 1, 2) for r in (0, 1)]
     assert "| a | p | random | 0, 1, 2 | 2 | 0.07 | 3 | 1.00 |" in noise_table(data)
     # One seed repeated, its repeat listed first (as a glob sorts seed0-repeat1.json before seed0.json): the seed
     # spread still compares repeat 0 of each seed.
-    one = [{"scene": "b", "protocol": "p", "selector": "farthest", "seed": s, "repeat": r, "test": {"psnr": v}}
-           for s, r, v in ((0, 1, 20.70), (0, 0, 20.59), (1, 0, 20.78))]
+    one = [make_result("b", "p", "farthest", s, v, repeat=r) for s, r, v in ((0, 1, 20.70), (0, 0, 20.59), (1, 0, 20.78))]
     assert "| b | p | farthest | 0 | 2 | 0.08 | 2 | 0.13 |" in noise_table(one)
-    runs = [{"device": "NVIDIA H100 80GB HBM3", "runs_per_gpu": 4, "sweep_id": "x", "started_at": 100.0 + k,
-             "wall_seconds": 396.0} for k in range(4)]
+    assert noise_table(data[::2]) == ""  # no repeats, no table
+    h100 = "NVIDIA H100 80GB HBM3"
+    # 4 runs of 396 s started 1 s apart: a 399 s span, 3600 * 4 / 399 = 36.1 runs per hour
+    runs = [make_result(device=h100, runs_per_gpu=4, sweep_id="x", started_at=100.0 + k, wall=396.0) for k in range(4)]
     assert "| H100 | 4 | 4 | 399 | 36.1 | 396 |" in throughput_table(runs)
     # Two sweeps on one machine at the same time (3 and 4 runs per GPU): one span, 7 at once, not two rows.
-    shared = [{"device": "NVIDIA H100 80GB HBM3", "runs_per_gpu": n, "sweep_id": f"vm-500.{pid}", "started_at": 500.0,
-               "wall_seconds": 900.0} for pid, n in ((11, 3),) * 3 + ((12, 4),) * 4]
+    shared = [make_result(device=h100, runs_per_gpu=n, sweep_id=f"vm-500.{pid}", started_at=500.0, wall=900.0)
+              for pid, n in ((11, 3),) * 3 + ((12, 4),) * 4]
     table = throughput_table(runs + shared)
     assert "| H100 | 7 | 7 | 900 | 28.0 | 900 |" in table and table.count("| H100 |") == 2
 
 
 def test_timing_columns_take_only_runs_that_had_the_gpu_to_themselves():
-    run = lambda sel, sweep, start, wall: {  # noqa: E731
-        "scene": "a", "protocol": "hpgs", "selector": sel, "seed": 0, "num_views_final": 27, "runs_per_gpu": 1,
-        "device": "NVIDIA H100 80GB HBM3", "sweep_id": sweep, "started_at": start, "wall_seconds": wall,
-        "selection_seconds": wall / 100, "test": {"psnr": 20.0, "ssim": 0.5, "lpips": 0.3}}
+    run = lambda sel, sweep, start, wall: make_result(  # noqa: E731
+        "a", "hpgs", sel, 0, 20.0, 0.5, 0.3, num_views_final=27, device="NVIDIA H100 80GB HBM3", sweep_id=sweep,
+        started_at=start, wall=wall, selection=wall / 100)
     # `blend`'s run was a sweep of one, but another sweep's run shared the GPU with it: no solo time.
     shared = [run("blend", "vm-9.1", 0.0, 1000.0), run("farthest", "vm-9.2", 500.0, 1000.0)]
     assert "| a | hpgs | blend | 1 | 27 | 20.00 | 0.500 | 0.300 | H100 | – | – |" in markdown_table(shared)
@@ -277,21 +288,37 @@ def test_timing_columns_take_only_runs_that_had_the_gpu_to_themselves():
     assert "| H100 | 1000 | 10.0 |" in markdown_table(other_machine)
 
 
-def test_report_only_writes_the_readme_section(tmp_path):
+def write_rows(out, data) -> None:
+    for r in data:
+        r.to_json(out / r.scene / r.protocol / r.selector / f"seed{r.seed}.json")
+
+
+def test_report_only_writes_the_results_page(tmp_path):
     out = tmp_path / "suite"
-    for r in rows({"farthest": 0.7, "fisher": 0.1}, seeds=(0, 1)):
-        path = out / r["scene"] / r["protocol"] / r["selector"] / f"seed{r['seed']}.json"
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(json.dumps({**r, "wall_seconds": 1.0, "selection_seconds": 0.0, "psnr_per_round": [],
-                                    "chosen_views": [], "initial_views": [], "command": "", "device": "cpu x2"}))
-    readme = tmp_path / "README.md"
-    readme.write_text(f"# x\n\n<!-- bench:{out.as_posix()}:begin -->\nold\n<!-- bench:{out.as_posix()}:end -->\ntail\n")
-    written = write_report(out, readme=readme)
-    text = readme.read_text()
-    assert "old" not in text and text.endswith("tail\n") and "`farthest` beats `random`" in text
+    write_rows(out, rows({"farthest": 0.7, "fisher": 0.1}, seeds=(0, 1)))
+    page = tmp_path / "docs" / "results.md"
+    written = write_report(out, results_page=page)
+    text = page.read_text()
+    assert text.startswith("# Benchmark results: which selector?\n") and page in written
+    assert f"Built by `hpgs bench --out {out.as_posix()} --report-only`" in text
+    assert "`farthest` beats `random` (`farthest` - `random` +0.70 dB, 95% CI [+0.70, +0.70], 6 scenes" in text
     assert (out / "paired.md").read_text() in text and (out / "fisherrf-paired-gains.png") in written
-    with pytest.raises(SystemExit, match="has no <!-- bench:elsewhere:begin -->"):
-        replace_section(readme, "bench:elsewhere", "x")
+    assert "Throughput" not in text  # these runs recorded no start times
+
+
+def test_readme_is_a_deprecated_alias_that_leaves_the_readme_alone(tmp_path, monkeypatch):
+    out = tmp_path / "suite"
+    write_rows(out, rows({"farthest": 0.7}, seeds=(0,)))
+    readme = tmp_path / "README.md"
+    readme.write_text("# mine\n")
+    monkeypatch.chdir(tmp_path)
+    with pytest.warns(DeprecationWarning, match="--readme is deprecated and no longer edits .*README.md"):
+        Bench(out=out, report_only=True, readme=readme).main()
+    assert readme.read_text() == "# mine\n"
+    text = (tmp_path / "docs" / "results.md").read_text()
+    assert "`farthest` beats `random`" in text and "| s1 | 60 | 9 | 0 |" in text
+    with pytest.raises(UserError, match="no results under .*empty; run a sweep first"):
+        Bench(out=tmp_path / "empty", report_only=True).main()
 
 
 def test_a_folder_scene_is_named_after_its_folder(tiny_scene):
@@ -311,12 +338,12 @@ def test_per_scene_preference_models_are_used_and_checked(tmp_path):
                   preference_models=models)
     hpgs_job, random_job = bench.jobs()
     args = train_args(bench, hpgs_job, tmp_path)
-    assert args[args.index("--pipeline.datamanager.hpgs.model") + 1] == str((models / "garden.pt").resolve())
-    assert "--pipeline.datamanager.hpgs.model" not in train_args(bench, random_job, tmp_path)
+    assert args[args.index(f"--{SELECTION_PREFIX}hpgs.model") + 1] == str((models / "garden.pt").resolve())
+    assert f"--{SELECTION_PREFIX}hpgs.model" not in train_args(bench, random_job, tmp_path)
     settings = run_settings(bench, hpgs_job)
     assert settings["preference_model"] == provenance.file_hash(models / "garden.pt")
     (models / "garden.pt").unlink()
-    with pytest.raises(SystemExit, match="no preference model .*garden.pt for scene 'garden'; train one without that scene"):
+    with pytest.raises(UserError, match="no preference model .*garden.pt for scene 'garden'; train one without that scene"):
         train_args(bench, hpgs_job, tmp_path)
 
 
@@ -358,16 +385,16 @@ def test_per_scene_blend_weights_are_passed_and_recorded(tmp_path):
                   blend_weights=table)
     jobs = {(j.scene.name, j.name): j for j in bench.jobs()}
     args = train_args(bench, jobs["garden", "blend"], tmp_path)
-    assert args[args.index("--pipeline.datamanager.blend.farthest-weight") + 1] == "0.3"
-    assert args[args.index("--pipeline.datamanager.blend.hpgs-weight") + 1] == "0.6"
+    assert args[args.index(f"--{SELECTION_PREFIX}blend.farthest-weight") + 1] == "0.3"
+    assert args[args.index(f"--{SELECTION_PREFIX}blend.hpgs-weight") + 1] == "0.6"
     assert run_settings(bench, jobs["garden", "blend"])["selector_options"]["hpgs_weight"] == 0.6
     # A scene the table does not name keeps the shipped weights; other selectors get no blend flags.
-    assert "--pipeline.datamanager.blend.hpgs-weight" not in train_args(bench, jobs["other", "blend"], tmp_path)
+    assert f"--{SELECTION_PREFIX}blend.hpgs-weight" not in train_args(bench, jobs["other", "blend"], tmp_path)
     assert run_settings(bench, jobs["other", "blend"])["selector_options"]["hpgs_weight"] == 0.432
-    assert not any(a.startswith("--pipeline.datamanager.blend") for a in train_args(bench, jobs["garden", "farthest"], tmp_path))
+    assert not any(a.startswith(f"--{SELECTION_PREFIX}blend") for a in train_args(bench, jobs["garden", "farthest"], tmp_path))
     table.write_text(json.dumps({"combination_loso": {"weights": {"garden": {"farthest": 0.3, "fisher": 0.6}}}}))
-    with pytest.raises(SystemExit, match="combines farthest, fisher; blend takes farthest and hpgs"):
+    with pytest.raises(UserError, match="combines farthest, fisher; blend takes farthest and hpgs"):
         train_args(bench, jobs["garden", "blend"], tmp_path)
     table.write_text("{}")
-    with pytest.raises(SystemExit, match="is not a candidate_scores.py JSON"):
+    with pytest.raises(UserError, match="is not a candidate_scores.py JSON"):
         train_args(bench, jobs["garden", "blend"], tmp_path)

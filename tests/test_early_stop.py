@@ -8,9 +8,12 @@ import math
 from pathlib import Path
 
 import pytest
-
 from conftest import run_training, short_config
-from hpgs_ns.early_stop import GainModel, early_stop_curve, fit_gain_model, round_gains, view_gains
+from test_bench_results import make_result
+
+from hpgs_ns.bench.gain_fit import early_stop_curve, fit_gain_model, round_gains, view_gains
+from hpgs_ns.bench.results import RoundPsnr
+from hpgs_ns.early_stop import GainModel
 from hpgs_ns.errors import UserError
 
 
@@ -19,16 +22,16 @@ def runs(scene: str, a: float, b: float, seed: int = 0, initial_views=None) -> l
     0.3 dB of training per round whatever the views (the confound the reference removes)."""
     steps = [400, 900, 1500, 2200]
     views = [4, 5, 6, 7]
-    ref = {str(s): 15.0 + 0.3 * k for k, s in enumerate(steps)}
+    ref = {s: 15.0 + 0.3 * k for k, s in enumerate(steps)}
     g, sel = 0.0, {}
     for k, s in enumerate(steps):
-        sel[str(s)] = ref[str(s)] + g
+        sel[s] = ref[s] + g
         g += a + b * math.log(views[k])
-    base = {"scene": scene, "protocol": "fisherrf", "seed": seed, "initial_views": initial_views or [f"{seed}.jpg"]}
+    initial = initial_views or [f"{seed}.jpg"]
     return [
-        {**base, "selector": "initial", "psnr_at_round_steps": ref, "test": {"psnr": 15.0 + 0.3 * 4}, "psnr_per_round": []},
-        {**base, "selector": "fisher", "psnr_at_round_steps": sel, "test": {"psnr": 15.0 + 0.3 * 4 + g}, "num_views_final": 8,
-         "psnr_per_round": [{"step": s, "num_views_before": v, "test_psnr": sel[str(s)]} for s, v in zip(steps, views)]},
+        make_result(scene, "fisherrf", "initial", seed, 15.0 + 0.3 * 4, initial_views=initial, psnr_at_round_steps=ref),
+        make_result(scene, "fisherrf", "fisher", seed, 15.0 + 0.3 * 4 + g, initial_views=initial, psnr_at_round_steps=sel,
+                    num_views_final=8, psnr_per_round=[RoundPsnr(s, v, sel[s]) for s, v in zip(steps, views)]),
     ]
 
 
@@ -36,7 +39,7 @@ def test_a_views_gain_is_measured_against_the_reference_at_the_same_steps():
     rows = runs("s", 1.0, -0.4)
     gains = round_gains(rows)
     assert [(v, round(g, 9)) for _, _, v, g in gains] == [(v, round(1.0 - 0.4 * math.log(v), 9)) for v in (4, 5, 6, 7)]
-    assert view_gains(rows)[0]["G"][0] == 0.0  # before the first round: the same views as the reference
+    assert view_gains(rows)[0].G[0] == 0.0  # before the first round: the same views as the reference
     assert round_gains(runs("s", 1.0, -0.4)[1:]) == []  # no reference, no gain
 
 
@@ -45,8 +48,8 @@ def test_a_reference_of_another_seed_serves_only_a_run_from_the_same_initial_vie
     same = runs("s", 1.0, -0.4, seed=1, initial_views=["a.jpg", "b.jpg"])[1]
     other = runs("s", 1.0, -0.4, seed=2, initial_views=["a.jpg", "c.jpg"])[1]
     gains = view_gains([ref, same, other])
-    assert [v["run"]["seed"] for v in gains] == [1]
-    assert gains[0]["G"][0] == 0.0
+    assert [v.run.seed for v in gains] == [1]
+    assert gains[0].G[0] == 0.0
 
 
 def test_the_calibration_is_recovered_and_judged_leaving_one_scene_out(tmp_path):
@@ -62,7 +65,7 @@ def test_the_calibration_is_recovered_and_judged_leaving_one_scene_out(tmp_path)
     assert never["views_saved"] == 0 and never["psnr_lost_db"] == 0
     assert at_03["views_saved"] == 2 and at_03["psnr_lost_db"] == pytest.approx(2 - 0.4 * (math.log(6) + math.log(7)))
     with pytest.raises(ValueError, match="an `initial` reference"):
-        fit_gain_model([r for r in rows if r["selector"] != "initial"])
+        fit_gain_model([r for r in rows if r.selector != "initial"])
 
 
 def test_a_run_stops_selecting_when_the_next_view_gains_too_little(tiny_scene, tmp_path):

@@ -1,5 +1,7 @@
 """`hpgs bench`: run time against error for every selector, through the real `ns-train hpgs` pipeline.
 
-`protocols` (how many views, when to add), `runs` (the command, launching runs, resuming), `executors` (local,
-Ray, Slurm), `stress` (perturbed copies of scenes) and `report` (tables and plots, stress's too).
+`protocols` (how many views, when to add), `names` (the reference rows), `runs` (the command, launching runs,
+resuming), `results` (`RunResult`, what one run records), `executors` (local, Ray, Slurm), `stress` (perturbed
+copies of scenes), `stats` (paired comparisons), `gain_fit` (the early-stop calibration) and `report` (tables,
+plots, the results page).
 """

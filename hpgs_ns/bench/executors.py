@@ -17,6 +17,8 @@ from typing import Any, Callable, Dict, Iterator, List, Literal, Optional, Seque
 
 from rich.console import Console
 
+from hpgs_ns.errors import UserError
+
 CONSOLE = Console(stderr=True)
 INSTALL = "pip install 'hpgs-ns[cluster]'"
 
@@ -127,7 +129,7 @@ class RayExecutor:
         try:
             import ray
         except ImportError:
-            raise SystemExit(f"--executor ray needs Ray: {INSTALL}") from None
+            raise UserError(f"hpgs bench: --executor ray needs Ray: {INSTALL}") from None
         self.ray, self.config = ray, config
 
     def map(self, fn: Worker, items: Sequence[Any]) -> Iterator[Done]:
@@ -145,7 +147,7 @@ class RayExecutor:
         if per_run > gpus:
             message = f"--ray-gpus-per-run {per_run:g} but the Ray cluster has {gpus:g} GPUs"
             if started_here:
-                raise SystemExit(f"hpgs bench: {message}; pass --ray-gpus-per-run 0 for CPU runs")
+                raise UserError(f"hpgs bench: {message}; pass --ray-gpus-per-run 0 for CPU runs")
             CONSOLE.print(f"[yellow]{message}: tasks wait until the autoscaler adds GPU nodes")
         task = ray.remote(num_gpus=per_run, num_cpus=cfg.ray_cpus_per_run)(fn)
         env = thread_env(max(int(cfg.ray_cpus_per_run), 1))
@@ -192,7 +194,9 @@ def start_local_ray(ray, attempts: int = 3, num_cpus: Optional[int] = None) -> N
         except Exception as exc:
             ray.shutdown()
             if attempt == attempts:
-                raise SystemExit(f"hpgs bench: could not start a local Ray cluster ({attempts} tries): {exc}") from exc
+                first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+                raise UserError(f"hpgs bench: could not start a local Ray cluster ({attempts} tries: {first}); pass "
+                                "--ray-address of a running cluster or use --executor local") from exc
             CONSOLE.print(f"[yellow]local Ray cluster did not start (try {attempt} of {attempts}); retrying")
 
 
@@ -203,7 +207,7 @@ class SlurmExecutor:
         try:
             import submitit
         except ImportError:
-            raise SystemExit(f"--executor slurm needs submitit: {INSTALL}") from None
+            raise UserError(f"hpgs bench: --executor slurm needs submitit: {INSTALL}") from None
         self.submitit, self.config, self.folder = submitit, config, folder
 
     def map(self, fn: Worker, items: Sequence[Any]) -> Iterator[Done]:

@@ -11,9 +11,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import List, Tuple
 
+from hpgs_ns.bench.names import REFERENCES
 from hpgs_ns.selectors.registry import BUILTIN_SELECTORS, selector_names
-
-REFERENCES = ("initial", "all")
 
 
 def row_order() -> List[str]:

@@ -19,6 +19,8 @@ import subprocess
 from pathlib import Path
 from typing import Dict, List, Optional
 
+from hpgs_ns.bench.names import REFERENCES
+
 PACKAGE = Path(__file__).resolve().parent.parent
 
 # Files (relative to hpgs_ns/) whose change can change any run's numbers.
@@ -77,17 +79,19 @@ def git_commit() -> Optional[str]:
 
 
 def selector_options(selector: str, extra_args: List[str]) -> Optional[Dict]:
-    """Every option of `selector` as the run will use it: its defaults, with `--pipeline.datamanager.<selector>.*`
-    flags of `extra_args` applied (parsed by tyro, as ns-train does). None for the reference rows."""
+    """Every option of `selector` as the run will use it: its defaults, with `--pipeline.selection.<selector>.*`
+    flags of `extra_args` applied (or their old spelling `--pipeline.datamanager.<selector>.*`; parsed by tyro, as
+    ns-train does). None for the reference rows."""
     from hpgs_ns.selectors.registry import selector_config
 
-    if selector in ("initial", "all"):  # reference rows: no selector
+    if selector in REFERENCES:  # no selector
         return None
     config = selector_config(selector)
-    prefix = f"--pipeline.datamanager.{selector}."
+    prefixes = tuple(f"--pipeline.{group}.{selector}." for group in ("selection", "datamanager"))
     own: List[str] = []
     for i, arg in enumerate(extra_args):
-        if arg.startswith(prefix):
+        prefix = next((p for p in prefixes if arg.startswith(p)), None)
+        if prefix is not None:
             own.append("--" + arg[len(prefix):])
             own += [a for a in extra_args[i + 1 : i + 2] if not a.startswith("--")]
     if own:

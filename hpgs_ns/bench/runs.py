@@ -1,11 +1,12 @@
 """`hpgs bench`: the command, and launching its runs (each one a real `ns-train hpgs` in a subprocess).
 
 One run per (scene, protocol, selector, seed), plus two reference rows per (scene, protocol, reference seed):
-`initial` (no views added) and `all` (every training view). Each run writes
+`initial` (no views added) and `all` (every training view) (`names`). Each run writes its `results.RunResult` to
 `OUT/<scene>/<protocol>/<selector>/seed<k>.json` (`seed<k>-repeat<r>.json` for `--repeats`); runs whose JSON
 exists are skipped, so a killed sweep resumes, and a finished run made with other settings (code, preference
 model, selector options, schedule, dataparser options, ...) is a one-line error rather than mixed in.
-`hpgs bench --report-only` rebuilds the tables and the plots from whatever JSON is there (`report`).
+`hpgs bench --report-only` rebuilds the tables and the plots from whatever JSON is there (`report`), and with
+`--results-page docs/results.md` the results page.
 Scenes come from `--scenes` (folders) or a suite (`--suite real6`, `suites`), which also gives each scene's
 dataparser and options. `hpgs bench --stress pose-noise exposure corrupt` also runs every scene perturbed
 (`stress`): copies `OUT/_scenes/<scene>+<perturbation>`, results under `OUT/<scene>+<perturbation>/`.
@@ -22,6 +23,7 @@ import shutil
 import socket
 import subprocess
 import time
+import warnings
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Dict, List, Literal, NamedTuple, Optional, Sequence, Tuple
@@ -30,16 +32,18 @@ import tyro
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-from hpgs_ns.atomic_write import atomic_path, write_json_atomic
+from hpgs_ns.atomic_write import atomic_path
 from hpgs_ns.bench import provenance
 from hpgs_ns.bench.executors import ExecutorConfig, make_executor, runs_per_device
-from hpgs_ns.bench.protocols import DEFAULT_SELECTORS, PROTOCOLS, REFERENCES, Protocol, scaled
-from hpgs_ns.bench.report import write_report
-from hpgs_ns.bench.stress import PerturbationName, StressConfig, StressError, perturbed_copy
-from hpgs_ns.bench.suites import SYNTHETIC, Scene, SuiteError, load_suite, scene_from_folder
-from hpgs_ns.dataparser import SceneDataError
+from hpgs_ns.bench.names import ALL, INITIAL, REFERENCES
+from hpgs_ns.bench.protocols import DEFAULT_SELECTORS, PROTOCOLS, Protocol, scaled
+from hpgs_ns.bench.report import DEFAULT_RESULTS_PAGE, write_report
+from hpgs_ns.bench.results import Metrics, Provenance, RoundPsnr, RunResult, Timing, ViewMetrics
+from hpgs_ns.bench.stress import PerturbationName, StressConfig, perturbed_copy
+from hpgs_ns.bench.suites import SYNTHETIC, Scene, load_suite, scene_from_folder
 from hpgs_ns.early_stop import DEFAULT_GAIN_MODEL
-from hpgs_ns.ns_train import ns_train_command
+from hpgs_ns.errors import UserError
+from hpgs_ns.ns_train import SELECTION_PREFIX, ns_train_command
 
 CONSOLE = Console(stderr=True)
 PREFERENCE_SELECTORS = ("hpgs", "condorcet", "blend")  # the selectors that score with a preference model
@@ -113,9 +117,12 @@ class Bench:
     cannot move the numbers); the report then says how many code versions are behind the comparisons."""
     report_only: bool = False
     """Only rebuild the tables and plots from existing JSON."""
+    results_page: Optional[Path] = None
+    """Also write the results page (paired comparisons, repeat noise, throughput) to this markdown file, e.g.
+    docs/results.md."""
     readme: Optional[Path] = None
-    """Also write the results section into this markdown file, between `<!-- bench:OUT:begin -->` and
-    `<!-- bench:OUT:end -->` (OUT as given by --out)."""
+    """Deprecated: use --results-page. Writes the results page (to --results-page, default docs/results.md);
+    the file named here is left alone."""
     stress: List[PerturbationName] = field(default_factory=list)
     """Also run every scene under these perturbations of its training views (copies in OUT/_scenes)."""
     stress_config: StressConfig = field(default_factory=StressConfig)
@@ -124,15 +131,18 @@ class Bench:
     """Where the runs execute (`--executor local|ray|slurm`, `--runs-per-gpu N` and their options)."""
 
     def main(self) -> None:
+        page = self.results_page
+        if self.readme is not None:
+            page = page or DEFAULT_RESULTS_PAGE
+            warnings.warn(f"hpgs bench: --readme is deprecated and no longer edits {self.readme}; the results page "
+                          f"goes to {page} (--results-page PATH)", DeprecationWarning, stacklevel=2)
+            CONSOLE.print(f"[yellow]hpgs bench: --readme is deprecated; writing the results page to {page} "
+                          "(--results-page PATH) and leaving the README alone")
         if not self.report_only:
-            try:
-                scenes = self.scene_list()
-            except (SuiteError, SceneDataError, StressError) as err:
-                raise SystemExit(f"hpgs bench: {err}") from None
-            self.run_all(scenes)
+            self.run_all(self.scene_list())  # its UserErrors (suite, scene, stress) print as one line
         if not any(self.out.glob("*/*/*/seed*.json")):
-            raise SystemExit(f"hpgs bench: no results under {self.out}")
-        for path in write_report(self.out, readme=self.readme):
+            raise UserError(f"hpgs bench: no results under {self.out}; run a sweep first or pass the --out it wrote")
+        for path in write_report(self.out, results_page=page):
             CONSOLE.print(f"wrote {path}")
 
     def scene_list(self) -> List[Scene]:
@@ -153,7 +163,7 @@ class Bench:
             scenes += copies
         return scenes
 
-    def jobs(self, scenes: Optional[Sequence[Scene]] = None) -> List["Job"]:
+    def jobs(self, scenes: Optional[Sequence[Scene]] = None) -> List[Job]:
         """Every run, seed by seed: a sweep cut short has whole (scene, seed) pairs of every selector first."""
         scenes = list(scenes) if scenes is not None else [scene_from_folder(Path(s)) for s in self.scenes]
         reference_seeds = self.seeds if self.reference_seeds is None else self.reference_seeds
@@ -182,12 +192,12 @@ class Bench:
             if not path.exists():
                 todo.append(job)
                 continue
-            made_with = json.loads(path.read_text()).get("settings")  # absent in results older than this check
+            made_with = RunResult.from_json(path).provenance.settings  # None in results older than this check
             settings = run_settings(self, job)
             changed_keys = [k for k in sorted(set(made_with or {}) | set(settings)) if (made_with or {}).get(k) != settings.get(k)]
             if made_with is not None and changed_keys and not (self.accept_code_change and changed_keys == ["code"]):
                 changed = ", ".join(changed_keys)
-                raise SystemExit(
+                raise UserError(
                     f"hpgs bench: {path} was made with other settings ({changed}); pass another --out to keep both, "
                     "delete it to re-run" + (", or --accept-code-change if the code change cannot move the numbers"
                                              if changed_keys == ["code"] else "")
@@ -208,7 +218,7 @@ class Job(NamedTuple):
     scene: Scene
     protocol: Protocol
     name: str
-    """A selector, or a reference row (`initial`, `all`)."""
+    """A selector, or a reference row (`names.REFERENCES`)."""
     seed: int
     repeat: int = 0
 
@@ -244,7 +254,7 @@ def resolve_scenes(scenes: Sequence[Scene], folder: Path) -> List[Scene]:
             continue
         layout = text[len(SYNTHETIC):]
         if layout not in LAYOUTS:
-            raise SystemExit(f"hpgs bench: unknown synthetic scene {text!r}; use synthetic:" + " or synthetic:".join(LAYOUTS))
+            raise UserError(f"hpgs bench: unknown synthetic scene {text!r}; use synthetic:" + " or synthetic:".join(LAYOUTS))
         path = folder / f"synthetic-{layout}"
         if not (path / "sparse" / "0").is_dir():
             CONSOLE.print(f"generating {text} into {path}")
@@ -258,39 +268,33 @@ def train_args(bench: Bench, job: Job, run_root: Path) -> List[str]:
     protocol, name, seed = job.protocol, job.name, job.seed
     initial = bench.initial_views or protocol.initial_views
     selector, rounds = name, protocol.max_rounds
-    if name == "initial":
+    if name == INITIAL:
         selector, rounds = "random", 0
-    elif name == "all":
+    elif name == ALL:
         selector, rounds, initial = "random", 0, 100000
-    datamanager: Dict[str, Any] = {
-        "num-initial-views": initial,
-        "initial-views": protocol.initial_mode,
-        "max-rounds": rounds,
-        "selector": selector,
-        "seed": seed,
-        "eval-each-round": True,
-    }
+    datamanager: Dict[str, Any] = {"num-initial-views": initial, "initial-views": protocol.initial_mode, "seed": seed}
+    selection: Dict[str, Any] = {"max-rounds": rounds, "selector": selector, "eval-each-round": True}
     if protocol.select_at:
-        datamanager["select-at"] = protocol.select_at
+        selection["select-at"] = protocol.select_at
     else:
-        datamanager["select-every"] = protocol.select_every
+        selection["select-every"] = protocol.select_every
     if bench.reset_after_add:
-        datamanager["reset-after-add"] = True
+        selection["reset-after-add"] = True
     if bench.strict_init:
         datamanager["strict-init"] = True
     if bench.stop_when_gain_below is not None and name not in REFERENCES:
-        datamanager["stop-when-gain-below"] = bench.stop_when_gain_below
+        selection["stop-when-gain-below"] = bench.stop_when_gain_below
         if bench.gain_model is not None:
-            datamanager["gain-model"] = Path(bench.gain_model).resolve()
+            selection["gain-model"] = Path(bench.gain_model).resolve()
     if bench.log_candidate_scores and name not in REFERENCES:
-        datamanager["log-candidate-scores"] = True
-    datamanager.update(scene_selector_options(bench, job))
+        selection["log-candidate-scores"] = True
+    selection.update(scene_selector_options(bench, job))
     return ns_train_command(
         job.scene.path, run_root, job.scene.name, job.run_folder(run_root).name, protocol.steps,
         # ns-eval's JSON, written by the training process (hpgs_ns/trainer.py): no second start-up per run
         trainer={"machine.seed": seed, "final-eval-json": job.run_folder(run_root) / "eval.json"},
-        datamanager=datamanager, model={"rasterizer": bench.rasterizer}, extra=shlex.split(bench.extra_args),
-        dataparser=job.scene.dataparser, dataparser_options=job.scene.option_dict(),
+        datamanager=datamanager, selection=selection, model={"rasterizer": bench.rasterizer},
+        extra=shlex.split(bench.extra_args), dataparser=job.scene.dataparser, dataparser_options=job.scene.option_dict(),
     )
 
 
@@ -299,7 +303,7 @@ def run_settings(bench: Bench, job: Job) -> dict:
     schedule, the dataparser and its options, the code that trains and selects, the selector's options and its
     preference model."""
     selector = None if job.name in REFERENCES else job.name
-    own = [w for k, v in scene_selector_options(bench, job).items() for w in (f"--pipeline.datamanager.{k}", str(v))]
+    own = [w for k, v in scene_selector_options(bench, job).items() for w in (f"--{SELECTION_PREFIX}{k}", str(v))]
     options = provenance.selector_options(selector, shlex.split(bench.extra_args) + own) if selector else None
     return {
         "steps": job.protocol.steps,
@@ -317,7 +321,7 @@ def run_settings(bench: Bench, job: Job) -> dict:
 
 
 def scene_selector_options(bench: Bench, job: Job) -> Dict[str, Any]:
-    """The datamanager options this scene's selector gets from the sweep (as `--pipeline.datamanager.` suffixes):
+    """The selection options this scene's selector gets from the sweep (as suffixes of `ns_train.SELECTION_PREFIX`):
     its preference model (--preference-models) and blend's weights (--blend-weights), both fitted without it."""
     options: Dict[str, Any] = {}
     model = scene_preference_model(bench, job)
@@ -346,7 +350,7 @@ def scene_preference_model(bench: Bench, job: Job) -> Optional[Path]:
         return None
     path = (Path(bench.preference_models) / f"{job.scene.name}.pt").resolve()
     if not path.is_file():
-        raise SystemExit(f"hpgs bench: no preference model {path} for scene {job.scene.name!r}; train one without that "
+        raise UserError(f"hpgs bench: no preference model {path} for scene {job.scene.name!r}; train one without that "
                          "scene (leave one scene out) or drop --preference-models")
     return path
 
@@ -365,13 +369,13 @@ def scene_blend_weights(bench: Bench, job: Job) -> Dict[str, float]:
     try:
         table = json.loads(Path(bench.blend_weights).read_text())["combination_loso"]["weights"]
     except (OSError, ValueError, KeyError, TypeError) as err:
-        raise SystemExit(f"hpgs bench: --blend-weights {bench.blend_weights} is not a candidate_scores.py JSON with "
+        raise UserError(f"hpgs bench: --blend-weights {bench.blend_weights} is not a candidate_scores.py JSON with "
                          f"combination_loso.weights ({err}); write one with benchmarks/candidate_scores.py --out") from None
     weights = table.get(job.scene.name)
     if weights is None:
         return {}
     if set(weights) != {"farthest", "hpgs"}:
-        raise SystemExit(f"hpgs bench: --blend-weights {bench.blend_weights} combines {', '.join(sorted(weights))}; "
+        raise UserError(f"hpgs bench: --blend-weights {bench.blend_weights} combines {', '.join(sorted(weights))}; "
                          "blend takes farthest and hpgs (candidate_scores.py --selectors farthest hpgs)")
     return {"farthest-weight": float(weights["farthest"]), "hpgs-weight": float(weights["hpgs"])}
 
@@ -381,7 +385,15 @@ def gain_model_hash(bench: Bench) -> str:
     return provenance.file_hash(path) if path.is_file() else "missing"
 
 
-def run_one(bench: Bench, job: Job, env: Optional[Dict[str, str]] = None, sweep: Optional[Dict[str, Any]] = None) -> dict:
+class TrainingFailed(UserError, RuntimeError):
+    """One run's `ns-train` exited with an error; `tail` holds the end of its log."""
+
+    def __init__(self, message: str, tail: str = ""):
+        super().__init__(message)
+        self.tail = tail
+
+
+def run_one(bench: Bench, job: Job, env: Optional[Dict[str, str]] = None, sweep: Optional[Dict[str, Any]] = None) -> RunResult:
     """Train and evaluate one run in a subprocess with environment `env` (default: this process's). `sweep`:
     the sweep's `id` (the report's throughput groups runs by it) and `runs_per_gpu`, how many runs shared the
     device at a time (1: its times are its own)."""
@@ -401,47 +413,52 @@ def run_one(bench: Bench, job: Job, env: Optional[Dict[str, str]] = None, sweep:
         _, status, usage = os.wait4(proc.pid, 0)
     wall = time.perf_counter() - start
     if os.waitstatus_to_exitcode(status) != 0:
-        tail = "\n".join(log_path.read_text().strip().splitlines()[-15:])
-        raise SystemExit(f"hpgs bench: training failed ({shlex.join(cmd)}):\n{tail}")
+        tail = log_path.read_text().strip().splitlines()[-15:]
+        last = tail[-1] if tail else "no output"
+        raise TrainingFailed(f"hpgs bench: training {job.label} failed ({last}); its log: {log_path}", "\n".join(tail))
     log = run_dir / "candidate_scores.jsonl"
     if log.is_file():
         keep_candidate_log(log, job.result_path(bench.out).with_name(f"{job.stem}-candidates.jsonl.gz"))
     metrics = json.loads((run_dir / "eval.json").read_text())
     selected = json.loads((run_dir / "selected_views.json").read_text())
     rounds = selected["rounds"]
-    return {
-        "scene": job.scene.name,
-        "protocol": job.protocol.name,
-        "selector": job.name,
-        "seed": job.seed,
-        "repeat": job.repeat,
-        "smoke": job.scene.smoke,
-        "steps": job.protocol.steps,
-        "test": metrics["results"],
-        "num_test_views": len(selected["test"]),
-        "num_train_views": len(selected["active"]) + len(selected["withheld"]),
-        "num_views_final": len(selected["active"]),
-        "psnr_at_round_steps": selected.get("test_psnr_at_round_steps", {}),
-        "psnr_per_round": [
-            {"step": r["step"], "num_views_before": r["num_active"] - len(r["chosen"]), "test_psnr": r["test_psnr_before"]}
-            for r in rounds
-        ],
-        "wall_seconds": wall,
-        "started_at": started,
-        "sweep_id": sweep.get("id"),
-        "runs_per_gpu": sweep.get("runs_per_gpu", 1),
-        "selection_seconds": float(sum(r["seconds"] for r in rounds)),
-        "selection_seconds_per_round": [r["seconds"] for r in rounds],
-        "selection_work": summed_work(rounds),
-        **train_timing(run_dir),
-        "peak_memory_mb": {"host_rss": usage.ru_maxrss / 1024, "gpu_allocated": selected.get("peak_gpu_memory_mb")},
-        "initial_views": selected["initial"],
-        "chosen_views": [v for r in rounds for v in r["chosen"]],
-        "command": shlex.join(cmd),
-        "settings": run_settings(bench, job),
-        "provenance": {"git_commit": provenance.git_commit(), **library_versions()},
-        "device": device_name(),
-    }
+    timing = train_timing(run_dir)
+    return RunResult(
+        scene=job.scene.name,
+        protocol=job.protocol.name,
+        selector=job.name,
+        seed=job.seed,
+        repeat=job.repeat,
+        smoke=job.scene.smoke,
+        steps=job.protocol.steps,
+        data=str(job.scene.path),
+        dataparser=job.scene.dataparser,
+        test=Metrics.from_dict(metrics["results"]),
+        # per-view metrics, where the trainer's final eval records them
+        test_views=[ViewMetrics(v["name"], v["psnr"], v["ssim"], v["lpips"]) for v in metrics.get("test_views", [])],
+        num_test_views=len(selected["test"]),
+        num_train_views=len(selected["active"]) + len(selected["withheld"]),
+        num_views_final=len(selected["active"]),
+        psnr_at_round_steps={int(k): v for k, v in selected.get("test_psnr_at_round_steps", {}).items()},
+        psnr_per_round=[RoundPsnr(r["step"], r["num_active"] - len(r["chosen"]), r["test_psnr_before"]) for r in rounds],
+        timing=Timing(
+            wall_seconds=wall,
+            selection_seconds=float(sum(r["seconds"] for r in rounds)),
+            selection_seconds_per_round=[r["seconds"] for r in rounds],
+            train_iter_ms_median=timing.get("train_iter_ms_median"),
+            train_total_seconds=timing.get("train_total_seconds"),
+            started_at=started,
+            sweep_id=sweep.get("id"),
+            runs_per_gpu=sweep.get("runs_per_gpu", 1),
+            peak_host_rss_mb=usage.ru_maxrss / 1024,
+            peak_gpu_allocated_mb=selected.get("peak_gpu_memory_mb"),
+        ),
+        selection_work=summed_work(rounds),
+        initial_views=selected["initial"],
+        chosen_views=[v for r in rounds for v in r["chosen"]],
+        provenance=Provenance(command=shlex.join(cmd), device=device_name(), git_commit=provenance.git_commit(),
+                              libraries=library_versions(), settings=run_settings(bench, job)),
+    )
 
 
 def summed_work(rounds: List[dict]) -> Dict[str, float]:
@@ -499,13 +516,15 @@ def library_versions() -> Dict[str, Optional[str]]:
 
 
 def sweep_worker(item: Tuple[Bench, Job, Dict[str, Any]], env: Dict[str, str]) -> dict:
-    """Worker side: train and evaluate one run, write its JSON, return `{"result": ...}` or `{"error", "log"}`."""
+    """Worker side: train and evaluate one run, write its JSON, return `{"result": RunResult}` or
+    `{"error", "log"}` (the error with the end of the run's log, for the driver's out-of-memory hint)."""
     bench, job, sweep = item
     try:
         result = run_one(bench, job, env={**os.environ, **env}, sweep=sweep)
-    except (Exception, SystemExit) as exc:  # run_one exits on a failed training; keep the worker alive
-        return {"error": str(exc), "log": str(job.log_path(bench.out))}
-    write_json_atomic(job.result_path(bench.out), result)
+    except Exception as exc:  # keep the worker alive for the other runs
+        tail = getattr(exc, "tail", "")
+        return {"error": str(exc) + (f"\n{tail}" if tail else ""), "log": str(job.log_path(bench.out))}
+    result.to_json(job.result_path(bench.out))
     return {"result": result}
 
 
@@ -535,10 +554,10 @@ def run_sweep(bench: Bench, jobs: Sequence[Job], config: ExecutorConfig) -> None
                 result = value["result"]
                 path = job.result_path(bench.out)
                 if not path.exists():  # the worker wrote it unless it ran on another filesystem
-                    write_json_atomic(path, result)
+                    result.to_json(path)
                 progress.console.print(
-                    f"{job.label}  PSNR {result['test']['psnr']:.2f}  wall {result['wall_seconds']:.0f} s  "
-                    f"selection {result['selection_seconds']:.1f} s"
+                    f"{job.label}  PSNR {result.test.psnr:.2f}  wall {result.timing.wall_seconds:.0f} s  "
+                    f"selection {result.timing.selection_seconds:.1f} s"
                 )
             else:
                 failures.append(f"{job.label} (log: {value['log']})")
@@ -547,9 +566,9 @@ def run_sweep(bench: Bench, jobs: Sequence[Job], config: ExecutorConfig) -> None
                 progress.console.print(f"[red]failed: {failures[-1]}: {last[-1] if last else ''}")
             progress.advance(bar)
     if failures:
-        raise SystemExit(
-            f"hpgs bench: {len(failures)} of {len(jobs)} runs failed (the others' results are saved; "
-            "re-run to retry only these):\n  " + "\n  ".join(failures) + out_of_memory_hint(errors, sweep["runs_per_gpu"])
+        raise UserError(
+            f"hpgs bench: {len(failures)} of {len(jobs)} runs failed: {'; '.join(failures)}; the others' results are "
+            "saved: re-run to retry only these" + out_of_memory_hint(errors, sweep["runs_per_gpu"])
         )
 
 
@@ -559,5 +578,5 @@ def out_of_memory_hint(errors: Sequence[str], runs_per_gpu: int) -> str:
     n = sum("out of memory" in e.lower() or "OutOfMemoryError" in e for e in errors)
     if not n:
         return ""
-    return (f"\n{n} of them ran out of GPU memory: re-run with a lower --runs-per-gpu (now {runs_per_gpu}; "
+    return (f"; {n} of them ran out of GPU memory: re-run with a lower --runs-per-gpu (now {runs_per_gpu}; "
             "other processes on the same GPU count too)")

@@ -36,13 +36,23 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Dict, Iterable, List, Mapping, Sequence, Tuple
+from typing import Any, Dict, Iterable, List, Mapping, Protocol, Sequence, Tuple
 
 import numpy as np
 from scipy import stats as scipy_stats
 
-# Same as `hpgs_ns.bench.protocols.REFERENCES` (not imported: that module pulls in the selectors, and torch).
-REFERENCES: Tuple[str, ...] = ("initial", "all")
+from hpgs_ns.bench.names import REFERENCES
+
+
+class Run(Protocol):
+    """What a comparison reads of a run (`results.RunResult`, or another record with the same fields, e.g.
+    `benchmarks/suggest_check.py`'s): `test` has `psnr`, `ssim` and `lpips` attributes."""
+
+    scene: str
+    protocol: str
+    selector: str
+    seed: int
+    test: Any
 
 # metric -> True when higher is better
 HIGHER_IS_BETTER: Dict[str, bool] = {"psnr": True, "ssim": True, "lpips": False}
@@ -63,20 +73,20 @@ def _check_level(level: float) -> None:
         raise ValueError(f"level must be in (0, 1), got {level}")
 
 
-def _values(rows: Iterable[dict], selector: str, protocol: str, metric: str) -> Dict[Tuple[str, int], float]:
+def _values(rows: Iterable[Run], selector: str, protocol: str, metric: str) -> Dict[Tuple[str, int], float]:
     """(scene, seed) -> the selector's test metric, for one protocol. Two runs of one (scene, seed) are an error."""
     out: Dict[Tuple[str, int], float] = {}
     for r in rows:
-        if r["selector"] != selector or r["protocol"] != protocol:
+        if r.selector != selector or r.protocol != protocol:
             continue
-        key = (str(r["scene"]), int(r["seed"]))
+        key = (str(r.scene), int(r.seed))
         if key in out:
             raise ValueError(f"two {selector!r} runs for scene {key[0]!r}, seed {key[1]} under protocol {protocol!r}")
-        out[key] = float(r["test"][metric])
+        out[key] = float(getattr(r.test, metric))
     return out
 
 
-def paired_gains(rows: Iterable[dict], selector: str, baseline: str, protocol: str, metric: str = "psnr") -> Gains:
+def paired_gains(rows: Iterable[Run], selector: str, baseline: str, protocol: str, metric: str = "psnr") -> Gains:
     """scene -> {seed: gain of `selector` over `baseline`}, on the (scene, seed) pairs both ran under `protocol`.
 
     gain = selector - baseline for PSNR and SSIM, baseline - selector for LPIPS: positive when `selector` is better.
@@ -250,7 +260,7 @@ def verdict(selector: str, baseline: str, lo: float, hi: float, p: float, alpha:
 
 
 def compare(
-    rows: Iterable[dict],
+    rows: Iterable[Run],
     protocol: str,
     pairs: Sequence[Tuple[str, str]],
     metric: str = "psnr",
@@ -351,6 +361,7 @@ def scene_table(summaries: Sequence[SceneSummary], metric: str = "psnr") -> str:
 __all__ = [
     "Comparison",
     "HIGHER_IS_BETTER",
+    "Run",
     "SceneSummary",
     "compare",
     "comparison_table",

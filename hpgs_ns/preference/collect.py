@@ -25,6 +25,7 @@ from rich.progress import track
 
 from hpgs_ns.atomic_write import write_csv_atomic
 from hpgs_ns.dataparser import scene_dataparser
+from hpgs_ns.errors import UserError
 from hpgs_ns.ns_train import ns_train_command
 
 CONSOLE = Console(stderr=True)
@@ -60,7 +61,7 @@ class Collect:
 
     def main(self) -> None:
         if not self.data.is_dir():
-            raise SystemExit(f"hpgs collect: scene folder {self.data} does not exist; pass --data PATH")
+            raise UserError(f"hpgs collect: scene folder {self.data} does not exist; pass --data PATH")
         run_root = self.out / "run"
         datamanager = {
             "num-initial-views": self.num_views, "initial-views": "random", "max-rounds": 0, "seed": self.seed,

@@ -12,6 +12,7 @@ import torch
 from rich.console import Console
 from rich.progress import track
 
+from hpgs_ns.errors import UserError
 from hpgs_ns.preference.model import CheckpointError, PreferenceModel
 from hpgs_ns.preference.pairs import Pair, PairsError, load_image, read_usable_pairs
 
@@ -100,12 +101,10 @@ class EvalPref:
             pairs = read_usable_pairs(self.pairs)
             result = evaluate_pairs(model, pairs, self.batch_size, progress=not self.json)
         except (CheckpointError, PairsError) as err:
-            print(f"hpgs eval-pref: {err}", file=sys.stderr)
-            raise SystemExit(2)
+            raise UserError(f"hpgs eval-pref: {err}") from None
         if result["pairs"] == 0:
-            print(f"hpgs eval-pref: no labelled, unskipped pairs in {', '.join(map(str, self.pairs))}; "
-                  "label some with `hpgs label`", file=sys.stderr)
-            raise SystemExit(2)
+            raise UserError(f"hpgs eval-pref: no labelled, unskipped pairs in {', '.join(map(str, self.pairs))}; "
+                            "label some with `hpgs label`")
         result.update(model=str(self.model), pairs_csv=[str(p) for p in self.pairs], backbone=model.backbone_name)
         if self.json:
             sys.stdout.write(json.dumps(result) + "\n")

@@ -23,7 +23,6 @@ import csv
 import json
 import mimetypes
 import random
-import sys
 import threading
 import webbrowser
 from dataclasses import dataclass
@@ -34,6 +33,7 @@ from typing import Dict, List, Literal, Optional
 import tyro
 from typing_extensions import Annotated
 
+from hpgs_ns.errors import UserError
 from hpgs_ns.preference.model import CheckpointError
 from hpgs_ns.atomic_write import write_csv_atomic
 from hpgs_ns.preference.pairs import COLUMNS, SKIPPED, PairsError, pairs_reader, parse_flag
@@ -280,8 +280,7 @@ class Label:
                     raise PairsError("--order uncertain needs --model CHECKPOINT (from `hpgs train-pref`)")
                 order_by_uncertainty(book, self.model)
         except (PairsError, CheckpointError) as err:
-            print(f"hpgs label: {err}", file=sys.stderr)
-            raise SystemExit(2)
+            raise UserError(f"hpgs label: {err}") from None
         server = ThreadingHTTPServer(("127.0.0.1", self.port), make_handler(book))
         url = f"http://127.0.0.1:{server.server_address[1]}/"
         state = book.state()

@@ -23,6 +23,7 @@ from rich.console import Console
 from rich.progress import track
 from typing_extensions import Annotated
 
+from hpgs_ns.errors import UserError
 from hpgs_ns.offline_weights import MissingWeightsError
 from hpgs_ns.preference.evaluate import evaluate_pairs, index_pairs, raw_features_of
 from hpgs_ns.preference.model import (
@@ -255,8 +256,7 @@ class TrainPref:
         try:
             model = self.run()
         except (PairsError, BackboneUnavailable, RecipeError, MissingWeightsError) as err:
-            print(f"hpgs train-pref: {err}", file=sys.stderr)
-            raise SystemExit(2)
+            raise UserError(f"hpgs train-pref: {err}") from None
         model.save(self.out)
         held = model.meta["heldout"]
         acc = "n/a" if held["accuracy"] is None else f"{held['accuracy']:.1%}"

@@ -36,7 +36,6 @@ import json
 import math
 import os
 import shutil
-import sys
 import tempfile
 import time
 from dataclasses import asdict, dataclass, field
@@ -909,8 +908,7 @@ class MakeScene(SceneSpec):
         try:
             path = generate(spec, out, overwrite=self.overwrite)
         except SceneSpecError as err:
-            print(f"hpgs make-scene: error: {err}", file=sys.stderr)
-            raise SystemExit(2) from None
+            raise UserError(f"hpgs make-scene: {err}") from None
         truth = json.loads((path / "ground_truth.json").read_text())
         hidden = ", ".join(f"{h['name']} (seen by {len(h['seen_by'])}/{self.num_cameras})" for h in truth["hidden"])
         print(
