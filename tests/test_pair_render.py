@@ -11,6 +11,7 @@ import torch
 
 from hpgs_ns.cpu_raster import rasterization
 from hpgs_ns.render.pair_render import Splat, render_pairs, sh_squared_gradients
+from hpgs_ns.render.rasterize import rasterize_splat
 from hpgs_ns.selectors.fisher import FisherSelectorConfig
 
 torch.set_num_threads(1)
@@ -28,7 +29,8 @@ def random_splat(n: int = 300, sh_degree: int = 1, seed: int = 0):
         "features_rest": torch.randn(n, k - 1, 3, generator=g, dtype=torch.float64) * 0.1,
     }
     config = SimpleNamespace(sh_degree=sh_degree, sh_degree_interval=1, rasterize_mode="classic")
-    return SimpleNamespace(gauss_params=params, config=config, step=10, background_color=torch.tensor([0.1, 0.2, 0.3], dtype=torch.float64))
+    background = torch.tensor([0.1, 0.2, 0.3], dtype=torch.float64)
+    return SimpleNamespace(gauss_params=params, config=config, step=10, background_color=background)
 
 
 def as_splat(model, backend: str = "cpu") -> Splat:
@@ -58,12 +60,10 @@ def ring_cameras(c: int = 3, width: int = 24, height: int = 18):
 
 
 def plain_render(model, viewmats, Ks, W, H, leaves=None):
-    p = leaves or model.gauss_params
-    colors = torch.cat((p["features_dc"][:, None], p["features_rest"]), 1)
-    img, alpha, _ = rasterization(
-        p["means"], p["quats"], torch.exp(p["scales"]), torch.sigmoid(p["opacities"]).squeeze(-1), colors,
-        viewmats, Ks, W, H, packed=False, sh_degree=model.config.sh_degree,
-    )
+    """The model's own rasterization call (`HpgsSplatfactoModel._rasterize_cameras`'s), composited but not clamped
+    (as pair renders are)."""
+    splat = as_splat(model)
+    img, alpha, _ = rasterize_splat(rasterization, leaves or splat.params, splat.sh_degree, viewmats, Ks, W, H)
     return img + (1 - alpha) * model.background_color
 
 
@@ -75,13 +75,7 @@ def test_pair_render_matches_the_rasterizer(sh_degree):
         model.gauss_params["features_rest"] = model.gauss_params["features_rest"][:, :0]
     viewmats, Ks, W, H = ring_cameras()
     pr = render_pairs(as_splat(model, "cpu"), viewmats, Ks, W, H, ())
-    if sh_degree == 0:
-        p = model.gauss_params
-        img, alpha, _ = rasterization(p["means"], p["quats"], torch.exp(p["scales"]), torch.sigmoid(p["opacities"]).squeeze(-1),
-                                      torch.sigmoid(p["features_dc"]), viewmats, Ks, W, H, packed=False)
-        ref = img + (1 - alpha) * model.background_color
-    else:
-        ref = plain_render(model, viewmats, Ks, W, H)
+    ref = plain_render(model, viewmats, Ks, W, H)
     assert pr.image.shape == (3, H, W, 3)
     assert (pr.image - ref).abs().max() < 1e-9
     # Frustum culling: each view holds only the Gaussians that reach it, never all of them for every view.
@@ -101,7 +95,7 @@ def test_one_backward_gives_each_views_own_gradient():
         img = plain_render(model, viewmats[c : c + 1], Ks[c : c + 1], W, H, leaves)
         ref = torch.autograd.grad(img, [leaves[n] for n in names], grad_outputs=eps[c : c + 1])
         mine = pr.camera_ids == c
-        for name, g, r in zip(names, grads, ref):
+        for name, g, r in zip(names, grads, ref, strict=True):
             per_gauss = torch.zeros_like(r).index_add_(0, pr.gaussian_ids[mine], g[mine])
             assert torch.allclose(per_gauss, r, rtol=1e-7, atol=1e-10), (c, name, (per_gauss - r).abs().max())
 
@@ -119,7 +113,7 @@ def test_sh_squared_gradients_from_the_colour_gradient_equal_autograds(interval,
     assert not fast.leaves["features_rest"].requires_grad
     eps = torch.randint(0, 2, full.image.shape, generator=torch.Generator().manual_seed(3)).double() * 2 - 1
     g_full = torch.autograd.grad(full.image, [full.leaves[n] for n in names], grad_outputs=eps, retain_graph=True)
-    g_full = dict(zip(names, g_full))
+    g_full = dict(zip(names, g_full, strict=True))
     direct = ("means", "scales", "opacities")
     fast_inputs = [fast.leaves[n] for n in direct] + [fast.color_offset]
     g_fast = torch.autograd.grad(fast.image, fast_inputs, grad_outputs=eps, retain_graph=True)
@@ -127,7 +121,8 @@ def test_sh_squared_gradients_from_the_colour_gradient_equal_autograds(interval,
     assert torch.allclose(dc, g_full["features_dc"].square(), rtol=1e-10, atol=1e-15)
     assert torch.allclose(rest, g_full["features_rest"].square(), rtol=1e-10, atol=1e-15)
     assert rest[:, (degree + 1) ** 2 - 1 :].abs().sum() == 0 and rest[:, : (degree + 1) ** 2 - 1].abs().max() > 0
-    for name, g in zip(direct, g_fast):  # the means still get their path through the viewing direction
+    # The means still get their path through the viewing direction.
+    for name, g in zip(direct, g_fast[:-1], strict=True):
         assert torch.allclose(g, g_full[name], rtol=1e-10, atol=1e-15), name
 
     # The Fisher selector's per-pair diagonal is the same either way (same probes).
@@ -160,7 +155,8 @@ def test_linearized_gradients_equal_autograds(sh_degree, rotations, mode):
     g_full = full.gradients(eps)
     g_lin = lin.gradients(eps)
     for name in [n for n in names if sh_degree == 0 or n not in ("features_dc", "features_rest")]:
-        assert torch.allclose(g_lin[name], g_full[name], rtol=1e-9, atol=1e-13), (name, (g_lin[name] - g_full[name]).abs().max())
+        mine, ref = g_lin[name], g_full[name]
+        assert torch.allclose(mine, ref, rtol=1e-9, atol=1e-13), (name, (mine - ref).abs().max())
     if sh_degree:
         assert 0 < int((lin.color_mask == 0).sum()) < lin.color_mask.numel()  # the clamp is exercised
         dc, rest = sh_squared_gradients(lin.sh_bases, g_lin["color"].square(), 15)
@@ -194,7 +190,7 @@ def test_drop_hidden_leaves_out_only_pairs_with_no_pixel():
     rows = torch.tensor([where[int(k)] for k in key(kept)])
     dropped = torch.ones(full.camera_ids.numel(), dtype=torch.bool)
     dropped[rows] = False
-    for name, gf, gk in zip(names, g_full, g_kept):
+    for name, gf, gk in zip(names, g_full, g_kept, strict=True):
         assert torch.allclose(gk, gf[rows], rtol=1e-9, atol=1e-14), name
         assert gf[dropped].abs().max() == 0, name
 
@@ -216,7 +212,7 @@ def test_gsplat_backend_matches_the_cpu_twin():
         grads = torch.autograd.grad(pr.image, [pr.leaves[n] for n in names], grad_outputs=eps)
         out[backend] = (pr.image, grads)
     assert (out["gsplat"][0] - out["cpu"][0]).abs().max() < 1e-4
-    for g, c in zip(out["gsplat"][1], out["cpu"][1]):
+    for g, c in zip(out["gsplat"][1], out["cpu"][1], strict=True):
         assert (g - c).abs().max() <= 1e-3 * c.abs().max() + 1e-6
 
 

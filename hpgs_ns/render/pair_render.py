@@ -6,10 +6,11 @@ one backward per view and probe (200 candidates x 16 probes = 3200 launch-bound 
 
 Here the pairs whose footprint reaches a view are found first (no autograd: this is the frustum culling, so a
 view costs only its visible Gaussians), their raw parameters are gathered into leaf tensors [nnz, ...], projected
-in PyTorch (`cpu_raster.project`: gsplat's EWA maths), and composited by gsplat's packed `rasterize_to_pixels`
-(CUDA) or its pure-PyTorch twin `cpu_raster.rasterize_pairs`. The splat comes in as plain tensors (`Splat`, from
-`HpgsSplatfactoModel.splat()`), as gsplat's functions take them. One backward pass then gives every pair's gradient:
-every view's own gradient, for a whole batch of views at once.
+in PyTorch (`cpu_raster.project`: gsplat's EWA maths, with the settings and activations of the model's own renders,
+`render.rasterize`), and composited by gsplat's packed `rasterize_to_pixels` (CUDA) or its pure-PyTorch twin
+`cpu_raster.rasterize_pairs`. The splat comes in as plain tensors (`Splat`, from `HpgsSplatfactoModel.splat()`), as
+gsplat's functions take them. One backward pass then gives every pair's gradient: every view's own gradient, for a
+whole batch of views at once.
 
 With `linearize` the probes stop at the rasterizer: each pair's projected inputs (means2d, conics, opacity,
 colour) become the leaves, the Jacobian of those 9 numbers w.r.t. the pair's raw parameters is taken once per
@@ -32,11 +33,9 @@ from torch import Tensor
 from torch.profiler import record_function  # named ranges in benchmarks/fisher_probes.py --profile
 
 from hpgs_ns.cpu_raster import project, quat_scale_to_covar, rasterize_pairs, sh_bases, sh_to_color
+from hpgs_ns.render.rasterize import EPS2D, FAR_PLANE, NEAR_PLANE, TILE_SIZE, splat_colors, splat_opacities
 
 SH_PARAMS = ("features_dc", "features_rest")
-NEAR_PLANE = 0.01  # splatfacto's near plane
-EPS2D = 0.3  # gsplat's default low-pass (splatfacto keeps it)
-TILE_SIZE = 16
 PAIRS_PER_CHUNK = 1 << 22  # (camera, Gaussian) pairs tested at once when culling (bounds memory, not results)
 JACOBIAN_PAIRS_PER_CHUNK = 1 << 20  # pairs whose projection Jacobian is taken at once (6 batched copies of its graph)
 RASTER_INPUTS = (("means2d", 2), ("conics", 3), ("opacities", 1), ("colors", 3))  # what the rasterizer reads per pair
@@ -99,10 +98,13 @@ class PairRender:
             names = [n for n, t in self.leaves.items() if t.requires_grad]
             inputs = [self.leaves[n] for n in names] + ([self.color_offset] if self.color_offset is not None else [])
             grads = torch.autograd.grad(self.image, inputs, grad_image, retain_graph=retain_graph, allow_unused=True)
-            grads = [torch.zeros_like(t) if g is None else g for t, g in zip(inputs, grads)]
-            return dict(zip(names + (["color"] if self.color_offset is not None else []), grads))
-        grads = torch.autograd.grad(self.image, self.raster_inputs, grad_image, retain_graph=retain_graph, allow_unused=True)
-        g_raster = torch.cat([torch.zeros_like(t) if g is None else g for t, g in zip(self.raster_inputs, grads)], 1)
+            grads = [torch.zeros_like(t) if g is None else g for t, g in zip(inputs, grads, strict=True)]
+            return dict(zip(names + (["color"] if self.color_offset is not None else []), grads, strict=True))
+        grads = torch.autograd.grad(self.image, self.raster_inputs, grad_image, retain_graph=retain_graph,
+                                    allow_unused=True)
+        g_raster = torch.cat(
+            [torch.zeros_like(t) if g is None else g for t, g in zip(self.raster_inputs, grads, strict=True)], 1
+        )
         flat = (g_raster[:, :, None] * self.jacobian).sum(1)  # [nnz, P]: chain rule through the projection
         out, start = {}, 0
         for name in self.jacobian_params:
@@ -128,9 +130,12 @@ def visible_pairs(means: Tensor, covars: Tensor, viewmats: Tensor, Ks: Tensor, w
     cids, gids, radii = [], [], []
     for start in range(0, C, cams_per_chunk):
         vm, K = viewmats[start : start + cams_per_chunk], Ks[start : start + cams_per_chunk]
-        proj = project(means[None], covars[None], vm[:, None], K[:, None], width, height, EPS2D, False, radius_floor=0.1)
+        proj = project(means[None], covars[None], vm[:, None], K[:, None], width, height, EPS2D, False,
+                       radius_floor=0.1)  # gsplat's packed kernel's floor
         m2, r = proj["means2d"], proj["radius"]
-        valid = ok[None] & (proj["depths"] >= NEAR_PLANE) & (proj["det"] > 0) & (r > 0) & torch.isfinite(r)
+        depths = proj["depths"]
+        valid = ok[None] & (depths >= NEAR_PLANE) & (depths <= FAR_PLANE)
+        valid &= (proj["det"] > 0) & (r > 0) & torch.isfinite(r)
         valid &= torch.isfinite(m2).all(-1) & torch.isfinite(proj["conics"]).all(-1)
         valid &= (m2[..., 0] + r > 0) & (m2[..., 0] - r < width) & (m2[..., 1] + r > 0) & (m2[..., 1] - r < height)
         c, g = torch.nonzero(valid, as_tuple=True)
@@ -190,7 +195,8 @@ def render_pairs(
         bases = pair_sh_bases(leaves, cids, viewmats, degree)
     if degree is not None:
         colors = torch.clamp_min(colors, 0.0)
-    image, _ = rasterize(proj["means2d"], proj["conics"], colors, opacities, radii, proj["depths"], cids, gids, C, width, height, backgrounds)
+    image, _ = rasterize(proj["means2d"], proj["conics"], colors, opacities, radii, proj["depths"], cids, gids, C,
+                         width, height, backgrounds)
     return PairRender(
         image=image, leaves=leaves, camera_ids=cids, gaussian_ids=gids, color_offset=offset, sh_bases=bases,
         pairs_in_frustum=in_frustum,
@@ -200,7 +206,7 @@ def render_pairs(
 def pair_colors(p: Dict[str, Tensor], cids: Tensor, viewmats: Tensor, degree: int | None) -> Tensor:
     """splatfacto's colour of each pair before the clamp at 0 (SH at the pair's viewing direction, or sigmoid RGB)."""
     if degree is None:
-        return torch.sigmoid(p["features_dc"])
+        return splat_colors(p["features_dc"], p["features_rest"], None)
     campos = torch.inverse(viewmats)[:, :3, 3]
     coeffs = torch.cat((p["features_dc"][:, None, :], p["features_rest"]), dim=1)
     return sh_to_color(degree, p["means"] - campos[cids], coeffs) + 0.5
@@ -220,8 +226,9 @@ def _render_linearized(splat: Splat, params, cids, gids, radii, viewmats, Ks, wi
     # With SH the coefficients are left to the colour gradient; sigmoid RGB colours are chained like the rest.
     theta = [n for n in grad_params if n in params]
     leaves = {n: t[gids] for n, t in params.items()}
-    raster = [torch.empty(gids.shape[0], w, dtype=leaves["means"].dtype, device=leaves["means"].device) for _, w in RASTER_INPUTS]
-    depths = torch.empty(gids.shape[0], dtype=leaves["means"].dtype, device=leaves["means"].device)
+    like = {"dtype": leaves["means"].dtype, "device": leaves["means"].device}
+    raster = [torch.empty(gids.shape[0], w, **like) for _, w in RASTER_INPUTS]
+    depths = torch.empty(gids.shape[0], **like)
     widths = [leaves[n].shape[1:].numel() for n in theta]
     offsets = [sum(widths[:k]) for k in range(len(theta))]
     jac = leaves["means"].new_zeros(gids.shape[0], 9, sum(widths))
@@ -242,10 +249,10 @@ def _render_linearized(splat: Splat, params, cids, gids, radii, viewmats, Ks, wi
                 k = y.shape[1]
                 eye = torch.eye(k, dtype=y.dtype, device=y.device)[:, None, :].expand(k, y.shape[0], k)
                 grads = torch.autograd.grad(y, [p[n] for n in theta], eye, is_grads_batched=True, allow_unused=True)
-                for g, w, o in zip(grads, widths, offsets):
+                for g, w, o in zip(grads, widths, offsets, strict=True):
                     if g is not None:
                         jac[rows, first : first + k, o : o + w] = g.reshape(k, y.shape[0], w).transpose(0, 1)
-        for leaf, part in zip(raster, (proj["means2d"], proj["conics"], opacities[:, None], colors)):
+        for leaf, part in zip(raster, (proj["means2d"], proj["conics"], opacities[:, None], colors), strict=True):
             leaf[rows] = part.detach()
         depths[rows] = proj["depths"].detach()
         if mask is not None:
@@ -262,15 +269,17 @@ def _render_linearized(splat: Splat, params, cids, gids, radii, viewmats, Ks, wi
     )
 
 
-def project_pairs(splat: Splat, p: Dict[str, Tensor], cids: Tensor, viewmats: Tensor, Ks: Tensor, width: int, height: int):
+def project_pairs(
+    splat: Splat, p: Dict[str, Tensor], cids: Tensor, viewmats: Tensor, Ks: Tensor, width: int, height: int
+):
     """gsplat's projection of each pair (its raw `means`, `quats`, `scales`, `opacities` in `p`, [nnz, ...]) into
     its view: (`_project`'s dict, the opacities splatfacto rasterizes with)."""
     cov = quat_scale_to_covar(p["quats"], torch.exp(p["scales"]))
     proj = project(p["means"], cov, viewmats[cids], Ks[cids], width, height, EPS2D, False)
-    opacities = torch.sigmoid(p["opacities"]).reshape(-1)
+    alphas = splat_opacities(p["opacities"])
     if splat.antialiased:
-        opacities = opacities * proj["compensations"]
-    return proj, opacities
+        alphas = alphas * proj["compensations"]
+    return proj, alphas
 
 
 def composited(splat: Splat, params, cids, gids, radii, viewmats, Ks, width, height, rasterize, backgrounds) -> Tensor:
@@ -302,7 +311,8 @@ def sh_squared_gradients(sh_bases: Tensor, color_grad_sq: Tensor, n_rest: int) -
 
 
 def _rasterize_cpu(means2d, conics, colors, opacities, radii, depths, cids, gids, C, width, height, backgrounds):
-    return rasterize_pairs(means2d, conics, colors, opacities, radii, depths, cids, C, width, height, TILE_SIZE, backgrounds)
+    return rasterize_pairs(means2d, conics, colors, opacities, radii, depths, cids, C, width, height, TILE_SIZE,
+                           backgrounds)
 
 
 def _rasterize_gsplat(means2d, conics, colors, opacities, radii, depths, cids, gids, C, width, height, backgrounds):
@@ -311,11 +321,11 @@ def _rasterize_gsplat(means2d, conics, colors, opacities, radii, depths, cids, g
 
     tile_w, tile_h = -(-width // TILE_SIZE), -(-height // TILE_SIZE)
     _, isect_ids, flatten_ids = isect_tiles(
-        means2d.detach().contiguous(), radii.int().contiguous(), depths.detach().contiguous(), TILE_SIZE, tile_w, tile_h,
-        packed=True, n_cameras=C, camera_ids=cids.contiguous(), gaussian_ids=gids.contiguous(),
+        means2d.detach().contiguous(), radii.int().contiguous(), depths.detach().contiguous(), TILE_SIZE, tile_w,
+        tile_h, packed=True, n_cameras=C, camera_ids=cids.contiguous(), gaussian_ids=gids.contiguous(),
     )
     offsets = isect_offset_encode(isect_ids, C, tile_w, tile_h)
     return rasterize_to_pixels(
-        means2d.contiguous(), conics.contiguous(), colors.contiguous(), opacities.contiguous(), width, height, TILE_SIZE,
-        offsets, flatten_ids, backgrounds=backgrounds, packed=True,
+        means2d.contiguous(), conics.contiguous(), colors.contiguous(), opacities.contiguous(), width, height,
+        TILE_SIZE, offsets, flatten_ids, backgrounds=backgrounds, packed=True,
     )
