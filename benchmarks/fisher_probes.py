@@ -56,7 +56,8 @@ def main() -> None:
     args = ap.parse_args()
 
     from hpgs_ns.atomic_write import write_json_atomic
-    from hpgs_ns.rounds import SelectionRounds
+    from hpgs_ns.selection.config import SelectionConfig
+    from hpgs_ns.selection.rounds import SelectionRounds
     from hpgs_ns.selectors.fisher import FisherSelectorConfig
 
     dm, model, step = load_run(args.run)
@@ -69,7 +70,7 @@ def main() -> None:
 
     def scores(k: int, seed: int, view_batch: int = view_batches[0], scale: float = default.resolution_scale,
                factor: int = default.train_probe_factor) -> Dict[int, float]:
-        ctx = SelectionRounds(dm, model, selector=FisherSelectorConfig().setup()).context(step)
+        ctx = SelectionRounds(SelectionConfig(), dm, model, selector=FisherSelectorConfig().setup()).context(step)
         ctx.generator = torch.Generator().manual_seed(seed)
         ctx.num_to_pick = 1
         config = FisherSelectorConfig(probes=k, view_batch=view_batch, resolution_scale=scale, train_probe_factor=factor)

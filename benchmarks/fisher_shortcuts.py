@@ -59,7 +59,8 @@ def main() -> None:
     args = ap.parse_args()
 
     from hpgs_ns.atomic_write import write_json_atomic
-    from hpgs_ns.rounds import SelectionRounds
+    from hpgs_ns.selection.config import SelectionConfig
+    from hpgs_ns.selection.rounds import SelectionRounds
     from hpgs_ns.selectors.fisher import FisherSelectorConfig
 
     with tempfile.TemporaryDirectory() as tmp:
@@ -67,7 +68,7 @@ def main() -> None:
         cuda = torch.cuda.is_available()
 
         def one_round(combo, seed: int):
-            ctx = SelectionRounds(dm, model, selector=FisherSelectorConfig().setup()).context(step)
+            ctx = SelectionRounds(SelectionConfig(), dm, model, selector=FisherSelectorConfig().setup()).context(step)
             ctx.generator, ctx.num_to_pick = torch.Generator().manual_seed(seed), 1
             cfg = FisherSelectorConfig(probes=args.probes, **dict(zip(SHORTCUTS, combo)))
             if cuda:

@@ -1,9 +1,9 @@
 """The active datamanager: trains on a growing subset of the training views.
 
 Built on nerfstudio's `FullImageDatamanager`. The training split is divided into *active* views (sampled for
-training) and withheld *candidates*; the test split is neither, ever. The selection rounds (`hpgs_ns.rounds`)
-decide when views join and which; this class owns the split, the sampling of training views, and the state that
-checkpoints keep: the active set and the round history (`get_extra_state`), restored by `--load-dir`, `ns-eval`
+training) and withheld *candidates*; the test split is neither, ever. The selection loop (`hpgs_ns.selection`)
+decides when views join and which; this class owns the split, the sampling of training views, and the state that
+checkpoints keep: the active set and the round records (`get_extra_state`), restored by `--load-dir`, `ns-eval`
 and `ns-viewer`.
 
 Views are named by their image's path relative to the data root (`hpgs_ns.dataparser.view_name`): Blender's
@@ -11,8 +11,8 @@ train and test splits both hold `r_0.png`. The test split is the dataparser's ow
 and never a candidate, and a split with no test views (`--eval-mode all`) or test views that are also training
 views is an error.
 
-Its config also carries the rounds' and the selectors' options (`--pipeline.datamanager.select-every`,
-`--pipeline.datamanager.<selector>.*`), where users set them.
+The selection loop's options live on the pipeline (`--pipeline.selection.*`); this config keeps their 0.2
+spelling as deprecated aliases that the pipeline moves there.
 """
 
 from __future__ import annotations
@@ -28,6 +28,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 
 from hpgs_ns.dataparser import DataParserUnion, MipNerf360DataParserConfig, SceneDataError, view_name
 from hpgs_ns.errors import UserError
+from hpgs_ns.selection.records import RoundRecord
 from hpgs_ns.selectors import (
     BlendSelectorConfig,
     CondorcetSelectorConfig,
@@ -35,13 +36,9 @@ from hpgs_ns.selectors import (
     FisherSelectorConfig,
     HpgsSelectorConfig,
     RandomSelectorConfig,
-    SelectorConfig,
-    registry,
 )
 from hpgs_ns.selectors.farthest import farthest_point_order
-
-# Every registered selector, built-in or from another package's entry point (read once, at import).
-SelectorName = Literal[tuple(registry.selector_names())]  # type: ignore[valid-type]
+from hpgs_ns.selectors.registry import SelectorName
 
 
 class ActiveViewError(UserError, RuntimeError):
@@ -68,58 +65,49 @@ class ActiveDatamanagerConfig(FullImageDatamanagerConfig):
     initial_view_names: Tuple[str, ...] = ()
     """Explicit initial views by name (image path relative to the data root, e.g. `images/0001.png`, or just the
     file name where that is unambiguous); overrides initial-views."""
-    select_every: int = 2000
-    """A selection round runs at steps select_every, 2*select_every, ... (never at step 0)."""
-    select_at: Tuple[int, ...] = ()
-    """Explicit round steps (e.g. FisherRF's 400 900 1500 ...); when given, select-every is ignored."""
-    views_per_round: int = 1
-    """Views added per round (greedy batch selection when > 1)."""
-    max_rounds: int = 7
-    """Rounds before selection stops (HP-GS: 7 additions over 15000 steps)."""
     seed: int = 0
-    """Seeds the initial views (random/fps) and the selectors' randomness."""
-    selector: SelectorName = "hpgs"
-    """Which selector picks the next views (default: the paper's human-preference selector). Other packages add
-    selectors through the `hpgs_ns.selectors` entry point group."""
-    # One option group per built-in selector (hpgs_ns.selectors.registry.BUILTIN_SELECTORS; a test checks they match).
-    random: RandomSelectorConfig = field(default_factory=RandomSelectorConfig)
-    """Options of the `random` selector."""
-    farthest: FarthestSelectorConfig = field(default_factory=FarthestSelectorConfig)
-    """Options of the `farthest` selector."""
-    fisher: FisherSelectorConfig = field(default_factory=FisherSelectorConfig)
-    """Options of the `fisher` selector (FisherRF)."""
-    hpgs: HpgsSelectorConfig = field(default_factory=HpgsSelectorConfig)
-    """Options of the `hpgs` selector (the paper's method)."""
-    condorcet: CondorcetSelectorConfig = field(default_factory=CondorcetSelectorConfig)
-    """Options of the `condorcet` selector (the paper's ablation)."""
-    blend: BlendSelectorConfig = field(default_factory=BlendSelectorConfig)
-    """Options of the `blend` selector (farthest + hpgs, weights fitted on candidate logs)."""
+    """Seeds the initial views (random/fps), the order views are trained in, and the selectors' randomness."""
     strict_init: bool = False
     """Keep only the COLMAP seed points whose track includes at least two initial views, so withheld and test
     views leak no geometry into the starting splat."""
-    eval_each_round: bool = False
-    """Measure test-view PSNR just before each round (recorded in selected_views.json; used by `hpgs bench`)."""
+    # Up to 0.2 the selection loop's options were set here; they moved to `--pipeline.selection.*`
+    # (`hpgs_ns.selection.config`). These copies only carry the old spelling there, with a warning.
+    selector: Optional[SelectorName] = None
+    """Deprecated: --pipeline.selection.selector."""
+    select_every: Optional[int] = None
+    """Deprecated: --pipeline.selection.select-every."""
+    select_at: Optional[Tuple[int, ...]] = None
+    """Deprecated: --pipeline.selection.select-at."""
+    views_per_round: Optional[int] = None
+    """Deprecated: --pipeline.selection.views-per-round."""
+    max_rounds: Optional[int] = None
+    """Deprecated: --pipeline.selection.max-rounds."""
+    eval_each_round: Optional[bool] = None
+    """Deprecated: --pipeline.selection.eval-each-round."""
     stop_when_gain_below: Optional[float] = None
-    """Stop selecting once the next view's predicted test-PSNR gain (dB) is below this (`hpgs_ns.early_stop`;
-    default: every round runs): views a scene does not need are not added."""
+    """Deprecated: --pipeline.selection.stop-when-gain-below."""
     gain_model: Optional[Path] = None
-    """The gain calibration for stop-when-gain-below (`benchmarks/early_stop.py --write-model`; default:
-    hpgs_ns/assets/gain-model.json, fitted on the suite's FisherRF-protocol runs)."""
-    log_candidate_scores: bool = False
-    """After each round, log every built-in selector's score of every candidate and each candidate's render error
-    against its withheld photo to candidate_scores.jsonl (analysis only: never read by the run, and its random
-    stream is left as it was)."""
-    snapshot_every: int = 0
-    """If > 0, every this many steps (and at the last step) render every training-split view to
-    `<run dir>/snapshots/step-NNNNNN/` (what `hpgs collect` labels). Test views are never rendered."""
+    """Deprecated: --pipeline.selection.gain-model."""
+    log_candidate_scores: Optional[bool] = None
+    """Deprecated: --pipeline.selection.log-candidate-scores."""
+    snapshot_every: Optional[int] = None
+    """Deprecated: --pipeline.selection.snapshot-every."""
     selection_short_side: Optional[int] = None
-    """Default render size (short side, pixels) for selectors that render views; None = dataset resolution."""
-    reset_after_add: bool = False
-    """After each round, start training over from the new view set, as FisherRF (Jiang et al., ECCV 2024) does:
-    the Gaussians go back to the step-0 ones, optimizer moments, densification state and camera optimizer are
-    cleared, and learning rates and splatfacto's step-keyed schedule (densification, opacity reset, SH degree,
-    resolution) restart at the round's step. The trainer's step keeps counting; the run ends at
-    max-num-iterations."""
+    """Deprecated: --pipeline.selection.render-short-side."""
+    reset_after_add: Optional[bool] = None
+    """Deprecated: --pipeline.selection.reset-after-add."""
+    random: RandomSelectorConfig = field(default_factory=RandomSelectorConfig)
+    """Deprecated: --pipeline.selection.random.*"""
+    farthest: FarthestSelectorConfig = field(default_factory=FarthestSelectorConfig)
+    """Deprecated: --pipeline.selection.farthest.*"""
+    fisher: FisherSelectorConfig = field(default_factory=FisherSelectorConfig)
+    """Deprecated: --pipeline.selection.fisher.*"""
+    hpgs: HpgsSelectorConfig = field(default_factory=HpgsSelectorConfig)
+    """Deprecated: --pipeline.selection.hpgs.*"""
+    condorcet: CondorcetSelectorConfig = field(default_factory=CondorcetSelectorConfig)
+    """Deprecated: --pipeline.selection.condorcet.*"""
+    blend: BlendSelectorConfig = field(default_factory=BlendSelectorConfig)
+    """Deprecated: --pipeline.selection.blend.*"""
 
     def __setstate__(self, state: dict) -> None:
         # A config.yml saved before an option group existed (PyYAML restores attributes, not __init__) gets that
@@ -128,11 +116,6 @@ class ActiveDatamanagerConfig(FullImageDatamanagerConfig):
         for f in fields(self):
             if f.name not in self.__dict__ and f.default_factory is not MISSING:
                 setattr(self, f.name, f.default_factory())
-
-    def selector_config(self) -> SelectorConfig:
-        """The options of the chosen selector: its group above for a built-in one, else the registry's."""
-        own = getattr(self, self.selector, None)
-        return own if isinstance(own, SelectorConfig) else registry.selector_config(self.selector)
 
 
 class ActiveDatamanager(FullImageDatamanager):
@@ -169,7 +152,7 @@ class ActiveDatamanager(FullImageDatamanager):
         self.generator = torch.Generator().manual_seed(self.config.seed)
         self.excluded = {self._view_index(v, "excluded") for v in self.config.exclude_views}
         self.active: List[int] = self._initial_views()
-        self.history: List[Dict[str, Any]] = []
+        self.history: List[RoundRecord] = []
         if self.config.strict_init:
             self._keep_points_seen_by_initial_views()
         self.train_unseen_cameras = self.sample_train_cameras()
@@ -185,7 +168,7 @@ class ActiveDatamanager(FullImageDatamanager):
     @property
     def initial_views(self) -> List[int]:
         """Active views that no round added."""
-        added = {i for h in self.history for i in h["chosen_indices"]}
+        added = {i for h in self.history for i in h.chosen_indices}
         return [i for i in self.active if i not in added]
 
     @property
@@ -285,7 +268,8 @@ class ActiveDatamanager(FullImageDatamanager):
 
     def get_extra_state(self) -> Dict[str, Any]:
         # Plain Python types only, so checkpoints load with torch.load(weights_only=True).
-        return {"version": 1, "image_names": list(self.image_names), "active": list(self.active), "history": self.history}
+        return {"version": 1, "image_names": list(self.image_names), "active": list(self.active),
+                "history": [record.to_dict() for record in self.history]}
 
     def set_extra_state(self, state: Dict[str, Any]) -> None:
         saved = state.get("image_names")
@@ -295,10 +279,10 @@ class ActiveDatamanager(FullImageDatamanager):
                 "checkpoint's active views belong to a different scene or split; pass the --data it was trained on"
             )
         self.active = [int(i) for i in state["active"]]
-        self.history = list(state["history"])
+        self.history = [RoundRecord.from_dict(record) for record in state["history"]]
         if saved != self.image_names:  # 0.1 names in the round log: the views' names now
             by_file = {Path(n).name: n for n in self.image_names}
             for record in self.history:
-                record["chosen"] = [by_file[n] for n in record["chosen"]]
-                record["scores"] = {by_file[n]: v for n, v in record.get("scores", {}).items()}
+                record.chosen = [by_file[n] for n in record.chosen]
+                record.scores = {by_file[n]: v for n, v in record.scores.items()}
         self.train_unseen_cameras = self.sample_train_cameras()

@@ -7,73 +7,23 @@ views evenly spaced along the capture, one view added every 2000 steps, 15000 st
 
 from __future__ import annotations
 
-import shlex
-import sys
-from pathlib import Path
-from typing import List, Optional
-
 import torch
 from nerfstudio.configs.base_config import MachineConfig, ViewerConfig
 from nerfstudio.engine.optimizers import AdamOptimizerConfig
 from nerfstudio.plugins.types import MethodSpecification
 
 from hpgs_ns.datamanager import ActiveDatamanagerConfig
-from hpgs_ns.dataparser import DATAPARSERS
 from hpgs_ns.errors import install_excepthook
 from hpgs_ns.model import HpgsSplatfactoModelConfig
 from hpgs_ns.pipeline import HpgsPipelineConfig
 from hpgs_ns.schedules import FloatExponentialDecaySchedulerConfig
+from hpgs_ns.selection.config import SelectionConfig
 from hpgs_ns.trainer import HpgsTrainerConfig
 
 TOTAL_STEPS = 15000
 
 # nerfstudio imports this module for ns-train/ns-eval/ns-viewer: our fixable errors print as one line there.
 install_excepthook()
-
-OLD_PARSER_PREFIX = "--pipeline.datamanager.dataparser."
-
-
-def old_dataparser_flags_hint(argv: List[str]) -> Optional[str]:
-    """The command line in the new spelling when `argv` (an `ns-train hpgs` call) sets dataparser options the
-    0.1 way (`--pipeline.datamanager.dataparser.X V`, which tyro rejects once the dataparser is a subcommand);
-    None otherwise."""
-    if not any(a.startswith(OLD_PARSER_PREFIX) for a in argv):
-        return None
-    kept: List[str] = []
-    moved: List[str] = []
-    i = 0
-    while i < len(argv):
-        arg = argv[i]
-        if not arg.startswith(OLD_PARSER_PREFIX):
-            kept.append(arg)
-            i += 1
-            continue
-        moved.append("--" + arg[len(OLD_PARSER_PREFIX):])
-        i += 1
-        while "=" not in arg and i < len(argv) and not argv[i].startswith("--"):
-            moved.append(argv[i])
-            i += 1
-    parser = next((a for a in kept if a in DATAPARSERS), None)
-    if parser is None:
-        kept.append("mipnerf360")
-        parser_at = len(kept)
-    else:
-        parser_at = kept.index(parser) + 1
-    fixed = kept[:parser_at] + moved + kept[parser_at:]
-    return "dataparser options now follow the dataparser subcommand: " + shlex.join(["ns-train", *fixed])
-
-
-def _reject_old_dataparser_flags() -> None:
-    # tyro's own message for them ("unrecognized arguments") does not say where they went; ns-train imports this
-    # module before it parses its arguments, so this is the one place that can.
-    if Path(sys.argv[0]).name in ("ns-train", "train.py") and "hpgs" in sys.argv[1:]:
-        hint = old_dataparser_flags_hint(sys.argv[1:])
-        if hint is not None:
-            print(f"error: {hint}", file=sys.stderr)
-            sys.exit(2)
-
-
-_reject_old_dataparser_flags()
 
 
 def hpgs_trainer_config(max_steps: int = TOTAL_STEPS) -> HpgsTrainerConfig:
@@ -90,6 +40,7 @@ def hpgs_trainer_config(max_steps: int = TOTAL_STEPS) -> HpgsTrainerConfig:
         pipeline=HpgsPipelineConfig(
             datamanager=ActiveDatamanagerConfig(),
             model=HpgsSplatfactoModelConfig(),
+            selection=SelectionConfig(),
         ),
         optimizers={
             "means": {

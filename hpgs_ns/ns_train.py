@@ -10,7 +10,7 @@ import sys
 from pathlib import Path
 from typing import List, Mapping, Optional, Sequence, Union
 
-SELECTION_PREFIX = "pipeline.datamanager."  # where the selection loop's options are set on the command line
+SELECTION_PREFIX = "pipeline.selection."  # where the selection loop's options are set on the command line
 Value = Union[str, int, float, bool, Path, Sequence[Union[str, int, float]]]
 
 

@@ -1,9 +1,9 @@
-"""The `hpgs` pipeline: nerfstudio's VanillaPipeline plus the selection rounds (and `hpgs collect`'s snapshots).
+"""The `hpgs` pipeline: nerfstudio's VanillaPipeline plus the selection loop (and `hpgs collect`'s snapshots).
 
-The datamanager and the model are set up exactly as VanillaPipeline does; this class only adds the rounds'
-training callbacks. They run before the model's own callbacks at each step, so a round sees the model as the
-previous iteration left it. Rounds exist only when training (`test_mode="val"`): `ns-eval` and `ns-viewer` open a
-run without setting up its selector.
+The datamanager and the model are set up exactly as VanillaPipeline does; this class adds the selection loop
+(`selection`, `--pipeline.selection.*`) and its training callbacks. They run before the model's own callbacks at
+each step, so a round sees the model as the previous iteration left it. Rounds exist only when training
+(`test_mode="val"`): `ns-eval` and `ns-viewer` open a run without setting up its selector.
 
 `selection_view` shows the selection in nerfstudio's viewer (`hpgs_ns.viewer`); nerfstudio installs it when the
 viewer is on, and each round redraws it.
@@ -17,8 +17,9 @@ from typing import List, Optional, Type
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes
 from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineConfig
 
-from hpgs_ns.rounds import SelectionRounds
-from hpgs_ns.snapshots import Snapshots
+from hpgs_ns.selection.config import SelectionConfig, take_datamanager_options
+from hpgs_ns.selection.rounds import SelectionRounds
+from hpgs_ns.selection.snapshots import Snapshots
 from hpgs_ns.viewer import SelectionView
 
 
@@ -27,18 +28,35 @@ class HpgsPipelineConfig(VanillaPipelineConfig):
     """VanillaPipeline with next-best-view selection rounds."""
 
     _target: Type = field(default_factory=lambda: HpgsPipeline)
+    selection: SelectionConfig = field(default_factory=SelectionConfig)
+    """The selection loop: when rounds run, the selector and its options, what is recorded."""
+
+    def __post_init__(self) -> None:
+        # tyro builds this config after the datamanager's: options given in the 0.2 spelling move here.
+        take_datamanager_options(self.datamanager, self.selection)
+
+    def __setstate__(self, state: dict) -> None:
+        # A config.yml of 0.2 (PyYAML restores attributes, not __init__) has no `selection`: its options are the
+        # datamanager's, read here without a warning (the file is old, not its user).
+        self.__dict__.update(state)
+        if "selection" not in state:
+            self.selection = SelectionConfig()
+        take_datamanager_options(self.datamanager, self.selection, warn=False)
 
 
 class HpgsPipeline(VanillaPipeline):
-    """VanillaPipeline whose training adds the views a selector picks (`hpgs_ns.rounds`)."""
+    """VanillaPipeline whose training adds the views a selector picks (`hpgs_ns.selection`)."""
 
     config: HpgsPipelineConfig
 
     def __init__(self, config: HpgsPipelineConfig, device: str, test_mode="val", *args, **kwargs):
+        # Options set on the datamanager after the config was built (a script in the 0.2 spelling).
+        take_datamanager_options(config.datamanager, config.selection)
         super().__init__(config, device, test_mode, *args, **kwargs)
         training = test_mode == "val"
-        self.rounds: Optional[SelectionRounds] = SelectionRounds(self.datamanager, self.model) if training else None
-        self.snapshots: Optional[Snapshots] = Snapshots(self.datamanager, self.model) if training else None
+        selection = config.selection
+        self.rounds: Optional[SelectionRounds] = selection.setup(datamanager=self.datamanager, model=self.model) if training else None
+        self.snapshots: Optional[Snapshots] = Snapshots(selection.snapshot_every, self.datamanager, self.model) if training else None
         # A viewer element, not an nn.Module: checkpoints' keys stay the same.
         self.selection_view = SelectionView(self.datamanager)
         if self.rounds is not None:
@@ -61,6 +79,8 @@ def upgrade_pipeline_config(config) -> bool:
 
     pipeline = config.pipeline
     if type(pipeline) is VanillaPipelineConfig and isinstance(pipeline.datamanager, ActiveDatamanagerConfig):
-        config.pipeline = HpgsPipelineConfig(datamanager=pipeline.datamanager, model=pipeline.model)
+        selection = SelectionConfig()
+        take_datamanager_options(pipeline.datamanager, selection, warn=False)
+        config.pipeline = HpgsPipelineConfig(datamanager=pipeline.datamanager, model=pipeline.model, selection=selection)
         return True
     return False

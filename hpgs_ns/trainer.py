@@ -46,12 +46,19 @@ class HpgsTrainer(Trainer):
         if upgrade_pipeline_config(config):
             CONSOLE.print("config.yml of hpgs-ns 0.1: its pipeline is now the hpgs pipeline (selection rounds run)")
         super().__init__(config, local_rank, world_size)
+        self.end_step = int(config.max_num_iterations)
+        """The run's last step + 1, counted from step 0 (`max_num_iterations` is rewritten on resume)."""
+
+    @property
+    def start_step(self) -> int:
+        """The first step this process trains: 0, or the step after the checkpoint it resumed from."""
+        return int(self._start_step)
 
     def _load_checkpoint(self) -> None:
         super()._load_checkpoint()
-        total = self.config.max_num_iterations
         if self._start_step > 0:
-            self.config.max_num_iterations = max(total - self._start_step, 0)
+            # nerfstudio's loop runs max_num_iterations steps after the checkpoint: make that the steps left.
+            self.config.max_num_iterations = max(self.end_step - self._start_step, 0)
             self.step = self._start_step - 1  # what `_after_train` saves if nothing is left to run
 
     def _after_train(self) -> None:

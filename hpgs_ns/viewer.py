@@ -24,13 +24,15 @@ from __future__ import annotations
 import math
 import threading
 from dataclasses import dataclass
-from typing import Any, Dict, List, Optional, Sequence, Tuple
+from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 import viser
 import viser.transforms as vtf
 from nerfstudio.utils.rich_utils import CONSOLE
 from nerfstudio.viewer.viewer_elements import ViewerElement
+
+from hpgs_ns.selection.records import RoundRecord
 
 RGB = Tuple[int, int, int]
 
@@ -73,7 +75,7 @@ class CameraRole:
 def camera_roles(datamanager) -> List[CameraRole]:
     """The role of every training and test camera, from the datamanager's state (also a loaded checkpoint's)."""
     dm = datamanager
-    added = {int(i): int(h["round"]) for h in dm.history for i in h["chosen_indices"]}
+    added = {int(i): h.round for h in dm.history for i in h.chosen_indices}
     initial = set(dm.initial_views)
     roles = []
     for i, name in enumerate(dm.image_names):
@@ -83,9 +85,9 @@ def camera_roles(datamanager) -> List[CameraRole]:
     return roles
 
 
-def round_label(record: Dict[str, Any]) -> str:
+def round_label(record: RoundRecord) -> str:
     """A round's entry in the panel's dropdown."""
-    return f"round {record['round']} (step {record['step']})"
+    return record.label
 
 
 def md(text: str) -> str:
@@ -93,12 +95,12 @@ def md(text: str) -> str:
     return "".join("\\" + c if c in "\\`*_{}[]<>()#+-!|~&" else c for c in str(text))
 
 
-def top_scores(record: Dict[str, Any], k: int = 3) -> List[Tuple[str, float]]:
+def top_scores(record: RoundRecord, k: int = 3) -> List[Tuple[str, float]]:
     """The round's k highest-scored candidates (higher = more wanted)."""
-    return sorted(record.get("scores", {}).items(), key=lambda kv: -kv[1])[:k]
+    return sorted(record.scores.items(), key=lambda kv: -kv[1])[:k]
 
 
-def rounds_markdown(history: Sequence[Dict[str, Any]], k: int = 3) -> str:
+def rounds_markdown(history: Sequence[RoundRecord], k: int = 3) -> str:
     """The rounds as the panel shows them: step, chosen views, top scores, seconds."""
     if not history:
         return "*No selection round has run yet.*"
@@ -106,8 +108,8 @@ def rounds_markdown(history: Sequence[Dict[str, Any]], k: int = 3) -> str:
     for h in history:
         tops = ", ".join(f"{md(name)} {score:.3g}" for name, score in top_scores(h, k)) or "-"
         lines.append(
-            f"**Round {h['round']}** · step {h['step']} · {h['seconds']:.2f} s  \n"
-            f"\\+ {', '.join(md(n) for n in h['chosen'])}  \n"
+            f"**Round {h.round}** · step {h.step} · {h.seconds:.2f} s  \n"
+            f"\\+ {', '.join(md(n) for n in h.chosen)}  \n"
             f"top: {tops}"
         )
     return "\n\n".join(lines)
@@ -170,13 +172,13 @@ class SelectionView(ViewerElement):
 
     # ---- updates ----------------------------------------------------------------------------------------
 
-    def on_round(self, record: Dict[str, Any]) -> None:
+    def on_round(self, record: RoundRecord) -> None:
         """`SelectionRounds` listener: redraw after a round and highlight it. Never stops training."""
         try:
             self.refresh()
             self.highlight(round_label(record))
         except Exception as err:  # the viewer is a view; training goes on without it
-            CONSOLE.print(f"[yellow]could not show round {record.get('round')} in the viewer: {err}")
+            CONSOLE.print(f"[yellow]could not show round {record.round} in the viewer: {err}")
 
     def refresh(self) -> None:
         """Redraw the cameras whose role changed and rewrite the panel (no-op until the viewer installs us)."""
@@ -220,14 +222,14 @@ class SelectionView(ViewerElement):
                 self.round_details.content = ""
                 return
             cameras = self.datamanager.train_dataset.cameras
-            for i in record["chosen_indices"]:
+            for i in record.chosen_indices:
                 node = f"/hpgs/highlight/train_{int(i):04d}"
                 self._frustum(node, cameras, int(i), ROLE_COLOURS["highlight"], 1.5 * self.scale)
                 self.highlighted.append(node)
             tops = "  \n".join(f"{md(name)}: {score:.4g}" for name, score in top_scores(record, 5))
             self.round_details.content = (
-                f"**{round_label(record)}**: {record['seconds']:.2f} s, {record['num_active']} active after it  \n"
-                f"chosen: {', '.join(md(n) for n in record['chosen'])}  \nhighest scores:  \n{tops or '-'}"
+                f"**{round_label(record)}**: {record.seconds:.2f} s, {record.num_active} active after it  \n"
+                f"chosen: {', '.join(md(n) for n in record.chosen)}  \nhighest scores:  \n{tops or '-'}"
             )
 
     # ---- drawing ----------------------------------------------------------------------------------------

@@ -3,9 +3,7 @@
 from __future__ import annotations
 
 import os
-import subprocess
 import sys
-import time
 import urllib.request
 from pathlib import Path
 
@@ -34,8 +32,9 @@ def tiny_scene(tmp_path_factory) -> Path:
     return make_scene(tmp_path_factory.mktemp("scenes") / "ring", layout="ring", num_cameras=40, width=64, height=48, num_points=1500, seed=0)
 
 
-def short_config(scene: Path, out: Path, steps: int = 60, every: int = 20, rounds: int = 2, initial: int = 6, **dm):
-    """An `hpgs` trainer config scaled down for tests (CPU rasterizer, tensorboard, no viewer)."""
+def short_config(scene: Path, out: Path, steps: int = 60, every: int = 20, rounds: int = 2, initial: int = 6, **options):
+    """An `hpgs` trainer config scaled down for tests (CPU rasterizer, tensorboard, no viewer); `options` are
+    `--pipeline.selection.*` or `--pipeline.datamanager.*` options by field name."""
     from hpgs_ns.method_config import hpgs_trainer_config
 
     cfg = hpgs_trainer_config(steps)
@@ -54,10 +53,10 @@ def short_config(scene: Path, out: Path, steps: int = 60, every: int = 20, round
     cfg.pipeline.model.refine_every = 20
     cfg.pipeline.model.num_downscales = 0  # full resolution from the start: short runs visibly improve
     cfg.pipeline.model.sh_degree_interval = 20
-    d = cfg.pipeline.datamanager
-    d.num_initial_views, d.select_every, d.max_rounds = initial, every, rounds
-    for key, value in dm.items():
-        setattr(d, key, value)
+    d, selection = cfg.pipeline.datamanager, cfg.pipeline.selection
+    d.num_initial_views, selection.select_every, selection.max_rounds = initial, every, rounds
+    for key, value in options.items():  # the selection loop's options, or the datamanager's
+        setattr(selection if hasattr(selection, key) else d, key, value)
     return cfg
 
 
@@ -97,27 +96,48 @@ def run_training(cfg):
 
 
 def stock_ns_viewer_page(config: Path, env: dict) -> str:
-    """Start stock `ns-viewer --load-config CONFIG` on a free-ish port and return its page once it serves one
-    (asserting the viewer did not die); the viewer is stopped before returning."""
-    port = 7000 + (int(time.time()) % 900)
-    viewer = subprocess.Popen(
-        [sys.executable, "-m", "nerfstudio.scripts.viewer.run_viewer", "--load-config", str(config),
-         "--viewer.websocket-port", str(port), "--viewer.websocket-host", "127.0.0.1"],
-        env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-    )
+    """Run stock `ns-viewer --load-config CONFIG` (nerfstudio's own entry point and tyro CLI, under `env`'s
+    variables) and return the page its server serves once the viewer has loaded the checkpoint and built its scene.
+
+    In-process: starting a second Python (imports, then the shipped preference model) took most of the time. Only
+    the viewer's endless `while True: time.sleep(0.01)` is cut: its first sleep fetches the page and stops the
+    viewer (and its viser server)."""
+    import socket
+    from unittest import mock
+
+    from nerfstudio.scripts.viewer import run_viewer
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    made, page = [], []
+
+    class Stop(Exception):
+        pass
+
+    def viewer_state(*args, **kwargs):
+        made.append(real_state(*args, **kwargs))
+        return made[-1]
+
+    def first_sleep(_seconds):
+        page.append(urllib.request.urlopen(f"http://127.0.0.1:{port}", timeout=30).read().decode())
+        raise Stop
+
+    real_state = run_viewer.ViewerState
+    argv = ["ns-viewer", "--load-config", str(config), "--viewer.websocket-port", str(port),
+            "--viewer.websocket-host", "127.0.0.1"]
     try:
-        page, deadline = None, time.time() + 120
-        while time.time() < deadline and viewer.poll() is None and page is None:
-            try:
-                page = urllib.request.urlopen(f"http://127.0.0.1:{port}", timeout=2).read().decode()
-            except OSError:
-                time.sleep(1)
-        assert viewer.poll() is None, viewer.stdout.read().decode()[-2000:]
-        assert page is not None and "<html" in page.lower()
-        return page
+        with mock.patch.dict(os.environ, env, clear=True), mock.patch.object(sys, "argv", argv), \
+                mock.patch.object(run_viewer, "ViewerState", viewer_state), \
+                mock.patch.object(run_viewer, "time", mock.Mock(sleep=first_sleep)):
+            run_viewer.entrypoint()
+    except Stop:
+        pass
     finally:
-        viewer.kill()
-        viewer.wait()
+        for viewer in made:
+            viewer.viser_server.stop()
+    assert made and page and "<html" in page[0].lower(), "stock ns-viewer did not serve its page"
+    return page[0]
 
 
 CHROMIUM = "/usr/bin/chromium"

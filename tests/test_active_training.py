@@ -124,11 +124,11 @@ def test_resume_restores_active_set_and_ends_at_total_steps(trained, tmp_path):
     shutil.copytree(run_dir, copy)
     cfg = short_config(trained["cfg"].data, tmp_path / "resumed", steps=80)
     cfg.load_dir = copy / "nerfstudio_models"
-    cfg.pipeline.datamanager.max_rounds = 3
+    cfg.pipeline.selection.max_rounds = 3
     trainer = run_training(cfg)
     dm = trainer.pipeline.datamanager
     history = dm.history
-    assert [h["step"] for h in history] == [20, 40, 60]  # rounds 1-2 from the checkpoint, none repeated
+    assert [h.step for h in history] == [20, 40, 60]  # rounds 1-2 from the checkpoint, none repeated
     assert history[:2] == trained["trainer"].pipeline.datamanager.history
     assert trainer.step == 79  # ended at the configured total, not 60 + 80
     assert set(trained["trainer"].pipeline.datamanager.active) < set(dm.active)

@@ -17,7 +17,7 @@ def test_pose_refinement_moves_only_the_views_trained_on(tiny_scene, tmp_path):
     adjustment = model.camera_optimizer.pose_adjustment.detach()
     assert adjustment.shape == (len(dm.image_names), 6)
     moved = set(torch.nonzero(adjustment.abs().sum(dim=1) > 0).flatten().tolist())
-    initial = set(dm.active) - {int(i) for r in dm.history for i in r["chosen_indices"]}
+    initial = set(dm.active) - {int(i) for r in dm.history for i in r.chosen_indices}
     assert initial <= moved, "an initial view was trained on for 40 steps but its pose never moved"
     assert moved <= set(dm.active), f"withheld views {sorted(moved - set(dm.active))} moved"
     assert torch.isfinite(adjustment).all()

@@ -1,4 +1,4 @@
-"""`--pipeline.datamanager.log-candidate-scores`: every selector's score of every candidate at each round, beside
+"""`--pipeline.selection.log-candidate-scores`: every selector's score of every candidate at each round, beside
 each candidate's render error, without changing the run; and the offline analysis that reads the logs."""
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from conftest import REPO, run_training, short_config
 def seeded_run(scene: Path, out: Path, log: bool):
     random.seed(0), np.random.seed(0), torch.manual_seed(0)  # as ns-train's --machine.seed does
     cfg = short_config(scene, out, steps=24, every=20, rounds=1, selector="random", log_candidate_scores=log)
-    cfg.pipeline.datamanager.fisher.probes = 2
+    cfg.pipeline.selection.fisher.probes = 2
     return run_training(cfg)
 
 
@@ -37,7 +37,7 @@ def test_the_log_holds_every_selector_and_the_oracle_and_changes_nothing(tiny_sc
     assert 5 < min(line["oracle"]["psnr"]) and max(line["oracle"]["lpips"]) <= 1
     # the run itself is the same: same pick, same Gaussians
     a, b = logged.pipeline, plain.pipeline
-    assert a.datamanager.history[0]["chosen"] == b.datamanager.history[0]["chosen"]
+    assert a.datamanager.history[0].chosen == b.datamanager.history[0].chosen
     for name, value in a.model.gauss_params.items():
         assert torch.equal(value, b.model.gauss_params[name]), name
 

@@ -1,6 +1,11 @@
-"""A run saved by hpgs-ns 0.1 (tests/data/run-0.1.0: config.yml, checkpoint, round log of a 30-step CPU run on the
-24-camera synthetic ring) still opens after the 0.2 layout change: its config names classes by their 0.1 module
-paths and a VanillaPipeline. The checkpoint was saved without splatfacto's LPIPS weights (10 MB, rebuilt at load)."""
+"""Runs saved by hpgs-ns 0.1 and 0.2 still open: `ns-eval`/`ns-viewer` (nerfstudio's `eval_setup`) and `--load-config`.
+
+tests/data/run-0.1.0 and run-0.2.0 hold the config.yml, checkpoint and round log of a 30-step CPU `farthest` run on
+the 24-camera synthetic ring (4-6 initial views, rounds at steps 10 and 20). 0.1 saved a VanillaPipeline with the
+rounds inside the datamanager and bare file names; 0.2 the hpgs pipeline with the selection options on the
+datamanager (`--pipeline.datamanager.selector`); 0.3 moved them to `--pipeline.selection`. The checkpoints were saved
+without splatfacto's LPIPS weights (10 MB, rebuilt at load).
+"""
 
 from __future__ import annotations
 
@@ -12,18 +17,19 @@ from pathlib import Path
 import pytest
 import yaml
 
-OLD_RUN = Path(__file__).resolve().parent / "data" / "run-0.1.0"
+DATA = Path(__file__).resolve().parent / "data"
+VERSIONS = ("0.1.0", "0.2.0")
 
 
-@pytest.fixture(scope="module")
-def old_run(tmp_path_factory) -> Path:
-    """The saved run, its config pointed at a fresh copy of the synthetic scene it was trained on."""
+@pytest.fixture(scope="module", params=VERSIONS)
+def old_run(request, tmp_path_factory) -> Path:
+    """A saved run, its config pointed at a fresh copy of the synthetic scene it was trained on."""
     from hpgs_ns.scenes.synthetic import make_scene
 
-    root = tmp_path_factory.mktemp("old")
+    root = tmp_path_factory.mktemp(f"run-{request.param}")
     scene = make_scene(root / "scene", layout="ring", num_cameras=24, width=32, height=24, num_points=300, seed=0)
     run = root / "runs" / "test" / "hpgs" / "run"
-    shutil.copytree(OLD_RUN, run)
+    shutil.copytree(DATA / f"run-{request.param}", run)
     config = yaml.load((run / "config.yml").read_text(), Loader=yaml.Loader)
     config.data = config.pipeline.datamanager.data = scene
     config.output_dir = root / "runs"
@@ -32,10 +38,14 @@ def old_run(tmp_path_factory) -> Path:
     return run
 
 
-def test_old_config_names_old_module_paths():
-    text = (OLD_RUN / "config.yml").read_text()
-    assert "nerfstudio.pipelines.base_pipeline.VanillaPipelineConfig" in text
-    assert "hpgs_ns.trainer.FloatExponentialDecaySchedulerConfig" in text
+def test_an_old_config_reads_its_selection_options_into_the_new_place(old_run):
+    from hpgs_ns.pipeline import upgrade_pipeline_config
+
+    config = yaml.load((old_run / "config.yml").read_text(), Loader=yaml.Loader)
+    upgrade_pipeline_config(config)  # 0.1: a VanillaPipeline
+    selection = config.pipeline.selection
+    assert (selection.selector, selection.select_every, selection.max_rounds) == ("farthest", 10, 2)
+    assert config.pipeline.datamanager.selector is None  # one place for each option once read
 
 
 def test_ns_eval_and_ns_viewer_load_an_old_run(old_run):
@@ -44,11 +54,11 @@ def test_ns_eval_and_ns_viewer_load_an_old_run(old_run):
 
     _, pipeline, checkpoint, step = eval_setup(old_run / "config.yml", test_mode="test")
     assert step == 29 and checkpoint.name == "step-000000029.ckpt"
-    saved = json.loads((old_run / "selected_views.json").read_text())
     dm = pipeline.datamanager
-    # 0.1 saved bare file names; the views are named by their path below the data root now
-    assert [dm.image_names[i] for i in dm.active] == [f"images/{n}" for n in saved["active"]]
-    assert [h["chosen"] for h in dm.history] == [[f"images/{n}" for n in r["chosen"]] for r in saved["rounds"]]
+    # Both versions picked the same views; 0.1 saved bare file names, the views are named by their path below the
+    # data root now.
+    assert [dm.image_names[i] for i in dm.active] == [f"images/{n:04d}.png" for n in (1, 4, 9, 13, 15, 23)]
+    assert [(h.step, h.chosen) for h in dm.history] == [(10, ["images/0004.png"]), (20, ["images/0013.png"])]
     # The renders ns-eval scores (its LPIPS needs larger images than these 32x24 ones).
     from hpgs_ns.metrics import psnr
 
@@ -64,10 +74,11 @@ def test_resuming_an_old_run_upgrades_its_pipeline_and_keeps_selecting(old_run):
     config = yaml.load((old_run / "config.yml").read_text(), Loader=yaml.Loader)
     config.load_dir = old_run / "nerfstudio_models"
     config.max_num_iterations = 42
-    config.pipeline.datamanager.max_rounds = 3
+    config.pipeline.datamanager.max_rounds = 3  # the 0.2 spelling in a script: still read, with a warning
     trainer = config.setup(local_rank=0, world_size=1)
     trainer.setup()
     assert isinstance(trainer.pipeline, HpgsPipeline)
+    assert trainer.pipeline.config.selection.max_rounds == 3
     trainer.train()
     log = json.loads((old_run / "selected_views.json").read_text())
     assert [r["step"] for r in log["rounds"]] == [10, 20, 30]

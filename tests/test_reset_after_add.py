@@ -1,4 +1,4 @@
-"""`--pipeline.datamanager.reset-after-add` (FisherRF's protocol) on the tiny scene with the CPU rasterizer.
+"""`--pipeline.selection.reset-after-add` (FisherRF's protocol) on the tiny scene with the CPU rasterizer.
 
 Densification is set to start at step 40 (splatfacto pauses refinement for num_train_data + refine_every steps
 after each opacity reset, step 0 included), so by the round at step 50 the splat has grown and the reset
@@ -134,7 +134,7 @@ def test_resume_continues_the_restarted_schedule_and_resets_to_the_saved_gaussia
     # The resumed model built fresh (random) quaternions; the reset must use the checkpoint's step-0 ones.
     assert_same_gaussians(seen[SECOND_ROUND]["gauss"], with_reset["seen"][0]["gauss"])
     history = resumed["trainer"].pipeline.datamanager.history
-    assert [(h["step"], h["reset"]) for h in history] == [(ROUND, True), (SECOND_ROUND, True)]
+    assert [(h.step, h.reset) for h in history] == [(ROUND, True), (SECOND_ROUND, True)]
 
 
 def test_without_the_option_training_continues(without_reset):
@@ -165,7 +165,7 @@ def test_bench_passes_the_option_and_keeps_its_results_apart(tiny_scene, tmp_pat
     args = train_args(bench, job, tmp_path)
     assert args[:4] == [sys.executable, "-m", "nerfstudio.scripts.train", "hpgs"]
     cfg = tyro.cli(tyro.conf.FlagConversionOff[HpgsTrainerConfig], default=hpgs_trainer_config(), args=args[4:])
-    assert cfg.pipeline.datamanager.reset_after_add is True
+    assert cfg.pipeline.selection.reset_after_add is True
     plain = Bench(scenes=[tiny_scene], protocols=["fisherrf"])
     assert plain.jobs()[0].protocol.name == "fisherrf"
-    assert "--pipeline.datamanager.reset-after-add" not in train_args(plain, plain.jobs()[0], tmp_path)
+    assert "--pipeline.selection.reset-after-add" not in train_args(plain, plain.jobs()[0], tmp_path)

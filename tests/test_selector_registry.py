@@ -1,23 +1,21 @@
-"""One selector registry: the datamanager's choices and option groups, `hpgs bench`, the README, and selectors
-that other packages register through the `hpgs_ns.selectors` entry point group."""
+"""One selector registry: the selection options' choices and groups (and their 0.2 spelling), `hpgs bench`, the
+candidate log, provenance, the README, and selectors that other packages register through the `hpgs_ns.selectors`
+entry point group."""
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import os
 import re
 import subprocess
 import sys
 import textwrap
-import typing
 from pathlib import Path
 
 import pytest
 
 from conftest import REPO, run_training, short_config
-from hpgs_ns.datamanager import ActiveDatamanagerConfig
-from hpgs_ns.selectors import BUILTIN_SELECTORS, SelectionError, SelectorConfig, selector_config, selector_names
+from hpgs_ns.selectors import BUILTIN_SELECTORS, SelectionError, selector_config, selector_names
 
 TOY = textwrap.dedent('''
     """A third-party selector: always the candidate with the highest index."""
@@ -54,26 +52,52 @@ def toy_plugin(tmp_path, monkeypatch) -> Path:
     return tmp_path
 
 
-def test_option_groups_and_choices_list_exactly_the_builtin_selectors():
-    groups = [f.name for f in dataclasses.fields(ActiveDatamanagerConfig)
-              if isinstance(f.default_factory, type) and issubclass(f.default_factory, SelectorConfig)]
-    assert groups == list(BUILTIN_SELECTORS)
-    for name, cls in BUILTIN_SELECTORS.items():
-        assert type(getattr(ActiveDatamanagerConfig(), name)) is cls
-    choices = typing.get_args(typing.get_type_hints(ActiveDatamanagerConfig)["selector"])
-    assert list(choices) == selector_names()[: len(choices)] and set(BUILTIN_SELECTORS) <= set(choices)
+def parse_pipeline(args):
+    """`ns-train hpgs`'s pipeline options as tyro reads them (in-process)."""
+    import tyro
+
+    from hpgs_ns.method_config import hpgs_trainer_config
+
+    default = hpgs_trainer_config(100).pipeline
+    return tyro.cli(type(default), default=default, args=args)
 
 
-def test_bench_and_the_readme_read_the_registry():
-    from hpgs_ns.bench.protocols import DEFAULT_SELECTORS, row_order
-    from hpgs_ns.bench.runs import Bench
+def test_selection_options_parse_in_the_new_spelling_and_the_old_one_warns(capsys):
+    new = parse_pipeline(["--selection.selector", "fisher", "--selection.fisher.probes", "3",
+                          "--selection.select-every", "50"])
+    assert (new.selection.selector, new.selection.fisher.probes, new.selection.select_every) == ("fisher", 3, 50)
+    assert "deprecated" not in capsys.readouterr().out
+    old = parse_pipeline(["--datamanager.selector", "fisher", "--datamanager.fisher.probes", "3",
+                          "--datamanager.select-every", "50", "--datamanager.selection-short-side", "32"])
+    assert (old.selection.selector, old.selection.fisher.probes, old.selection.select_every) == ("fisher", 3, 50)
+    assert old.selection.render_short_side == 32
+    # the datamanager's copies are cleared, so a saved config.yml holds each option once
+    assert old.datamanager.selector is None and old.datamanager.fisher.probes != 3
+    out = " ".join(capsys.readouterr().out.split())
+    assert "--pipeline.datamanager.selector -> --pipeline.selection.selector" in out
+    assert "--pipeline.datamanager.fisher.* -> --pipeline.selection.fisher.*" in out
+    assert "--pipeline.datamanager.selection-short-side -> --pipeline.selection.render-short-side" in out
 
-    assert list(DEFAULT_SELECTORS) == Bench().selectors == list(BUILTIN_SELECTORS)
-    assert row_order()[: len(BUILTIN_SELECTORS)] == list(BUILTIN_SELECTORS)
+
+def test_the_readme_lists_every_builtin_selector():
     readme = (REPO / "README.md").read_text()
     table = readme[readme.index("## The selectors"):]
     table = table[: table.index("\n\n", table.index("| name |"))]
     assert sorted(re.findall(r"^\| `([\w-]+)` \|", table, re.M)) == sorted(BUILTIN_SELECTORS)
+
+
+def test_a_plugin_selector_reaches_the_bench_rows_the_candidate_log_and_provenance(toy_plugin):
+    from hpgs_ns.bench.protocols import row_order
+    from hpgs_ns.bench.provenance import code_hash
+    from hpgs_ns.selection.candidate_log import logged_selectors
+
+    assert row_order().index("last") == len(BUILTIN_SELECTORS)  # after the built-in ones, before the references
+    # every selector whose scores say something, the plugin's too; random's scores are all equal, blend is a mix
+    assert logged_selectors() == ["farthest", "fisher", "hpgs", "condorcet", "last"]
+    before = code_hash("last")
+    assert before != code_hash(None)
+    (toy_plugin / "toy_selector.py").write_text(TOY + "\n# a change to the plugin's module\n")
+    assert code_hash("last") != before  # the plugin's own file moves its runs' code hash
 
 
 def test_unknown_selector_is_a_one_line_error():
@@ -92,7 +116,7 @@ def test_an_entry_point_selector_runs_a_round(toy_plugin, tiny_scene, tmp_path):
 
 
 def test_ns_train_offers_an_entry_point_selector_on_the_command_line(toy_plugin):
-    code = ("import tyro; from hpgs_ns.datamanager import ActiveDatamanagerConfig as C; "
+    code = ("import tyro; from hpgs_ns.selection.config import SelectionConfig as C; "
             "print(tyro.cli(C, args=['--selector', 'last']).selector_config().__class__.__name__)")
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(toy_plugin), os.environ.get("PYTHONPATH", "")])}
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)

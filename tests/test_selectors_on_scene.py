@@ -51,13 +51,13 @@ def one_sided(tiny_scene, tmp_path_factory):
 
 def pick(trainer, selector_config, name: str, k: int = 1):
     dm, rounds = trainer.pipeline.datamanager, trainer.pipeline.rounds
-    saved = (list(dm.active), list(dm.history), rounds.selector, dm.config.views_per_round, dm.config.selector)
-    rounds.selector, dm.config.views_per_round = selector_config.setup(), k
+    saved = (list(dm.active), list(dm.history), rounds.selector, rounds.config.views_per_round, rounds.config.selector)
+    rounds.selector, rounds.config.views_per_round = selector_config.setup(), k
     try:
         selection = rounds.run_round(1000 + len(dm.history))
         return [dm.image_names[i] for i in selection.indices], selection
     finally:
-        dm.active, dm.history, rounds.selector, dm.config.views_per_round, dm.config.selector = saved
+        dm.active, dm.history, rounds.selector, rounds.config.views_per_round, rounds.config.selector = saved
 
 
 def assert_unseen_side(names, az):
@@ -139,7 +139,7 @@ def test_random_follows_seed_and_empty_pool_ends_selection(one_sided):
     saved = list(dm.active)
     dm.active = list(range(len(dm.train_dataset)))  # pool exhausted
     try:
-        assert not rounds.is_round_step(2 * dm.config.select_every)
+        assert not rounds.is_round_step(2 * rounds.config.select_every)
         with pytest.raises(SelectionError, match="no withheld views"):
             rounds.run_round(123)
     finally:
@@ -193,4 +193,4 @@ def test_blend_scores_are_farthest_and_hpgs_scores_combined_through_ns_train_opt
     assert [selection.scores[c] for c in cand] == pytest.approx(expected.tolist(), abs=1e-6)
     assert names == [trainer.pipeline.datamanager.image_names[cand[int(expected.argmax())]]]
     assert_unseen_side(names, az)  # coverage weighs double here
-    assert type(trainer.pipeline.datamanager.config.blend) is BlendSelectorConfig  # an ns-train option group
+    assert type(trainer.pipeline.config.selection.blend) is BlendSelectorConfig  # an ns-train option group

@@ -93,7 +93,7 @@ def rgb_int(rgb) -> int:
 
 def expected_roles(dm) -> Dict[str, str]:
     """Node name -> role from the datamanager's own lists (independently of hpgs_ns.viewer.camera_roles)."""
-    added = {i for h in dm.history for i in h["chosen_indices"]}
+    added = {i for h in dm.history for i in h.chosen_indices}
     roles = {}
     for i in range(len(dm.image_names)):
         role = "added" if i in added else "initial" if i in dm.active else "withheld"
@@ -138,7 +138,7 @@ def test_ns_viewer_shows_the_roles_and_the_rounds(sync_playwright, run_config, t
     }
     assert sum(r == "added" for r in roles.values()) == 4 and sum(r == "test" for r in roles.values()) == 5
     labels = {n: m.text for n, m in scene_nodes(server).items() if n.endswith("/label")}
-    assert labels == {f"/hpgs/added/train_{i:04d}/label": f"r{h['round']}" for h in dm.history for i in h["chosen_indices"]}
+    assert labels == {f"/hpgs/added/train_{i:04d}/label": f"r{h.round}" for h in dm.history for i in h.chosen_indices}
 
     shot, bare = tmp_path / "viewer.png", tmp_path / "viewer-without-roles.png"
     url = f"http://127.0.0.1:{viewer.config.websocket_port}/"
@@ -158,13 +158,13 @@ def test_ns_viewer_shows_the_roles_and_the_rounds(sync_playwright, run_config, t
             text = page.inner_text("body")
             for h in dm.history:
                 assert f"Round {h['round']}" in text and f"step {h['step']}" in text
-                assert all(name in text for name in h["chosen"])
+                assert all(name in text for name in h.chosen)
             # Choosing a round in the dropdown highlights its views.
             page.get_by_label("Highlight").click()
             page.get_by_role("option", name="round 1 (step 10)").click()
             page.get_by_text("highest scores").first.wait_for(timeout=5_000)
             highlighted = set(frustum_colours(server, "/hpgs/highlight/"))
-            assert highlighted == {f"/hpgs/highlight/train_{i:04d}" for i in dm.history[0]["chosen_indices"]}
+            assert highlighted == {f"/hpgs/highlight/train_{i:04d}" for i in dm.history[0].chosen_indices}
             page.get_by_text("View selection").first.scroll_into_view_if_needed()
             time.sleep(1.5)  # the frustums and the splat render
             page.screenshot(path=str(shot))
@@ -213,7 +213,7 @@ def test_rounds_redraw_the_view_live(tiny_scene, tmp_path):
 
     def spy(self, record):
         original(self, record)
-        seen.append((record["round"], dict(frustum_colours(self.server)), self.rounds_list.content))
+        seen.append((record.round, dict(frustum_colours(self.server)), self.rounds_list.content))
 
     SelectionView.on_round = spy
     try:
@@ -227,7 +227,7 @@ def test_rounds_redraw_the_view_live(tiny_scene, tmp_path):
         assert not [k for k in trainer.pipeline.state_dict() if "selection_view" in k]
         for round_, colours, listed in seen:
             record = dm.history[round_ - 1]
-            for i in record["chosen_indices"]:
+            for i in record.chosen_indices:
                 assert colours[f"/hpgs/added/train_{i:04d}"] == rgb_int(ROLE_COLOURS["added"])
                 assert f"/hpgs/withheld/train_{i:04d}" not in colours
                 assert colours[f"/hpgs/highlight/train_{i:04d}"] == rgb_int(ROLE_COLOURS["highlight"])

@@ -26,37 +26,40 @@ PACKAGE = Path(__file__).resolve().parent.parent
 # Files (relative to hpgs_ns/) whose change can change any run's numbers.
 CODE_FILES = (
     "cpu_raster.py", "datamanager.py", "dataparser.py", "early_stop.py", "metrics.py", "method_config.py", "model.py",
-    "offline_weights.py", "pipeline.py", "rounds.py", "schedules.py", "snapshots.py", "trainer.py",
-    "render/pair_render.py", "render/viewmats.py", "scenes/colmap_model.py", "scenes/synthetic.py",
-    "selectors/base.py", "selectors/registry.py",
+    "offline_weights.py", "pipeline.py", "schedules.py", "trainer.py",
+    "render/pair_render.py", "render/rasterize.py", "render/viewmats.py", "scenes/colmap_model.py", "scenes/synthetic.py",
+    "selection/config.py", "selection/records.py", "selection/rounds.py", "selection/schedule.py",
+    "selection/snapshots.py", "selectors/base.py", "selectors/registry.py",
 )
-# A selector's own files (beside its module `selectors/<module>.py`): the preference model's code for those
-# that run one.
-SELECTOR_FILES = {
-    "hpgs": ("selectors/preference_features.py", "preference/model.py"),
-    "condorcet": ("selectors/preference_features.py", "preference/model.py"),
-    "blend": ("selectors/preference_features.py", "preference/model.py", "selectors/farthest.py", "selectors/hpgs.py"),
-}
 # Everything else: cannot change a run's numbers.
 NOT_CODE_FILES = (
-    "__init__.py", "atomic_write.py", "candidate_log.py", "cli.py", "demo.py", "errors.py", "ns_train.py", "viewer.py",
-    "bench/", "preference/", "render/__init__.py", "scenes/__init__.py", "selectors/__init__.py", "selectors/", "suggest/",
+    "__init__.py", "atomic_write.py", "cli.py", "demo.py", "errors.py", "ns_train.py", "viewer.py",
+    "bench/", "preference/", "render/__init__.py", "scenes/__init__.py", "selection/__init__.py",
+    "selection/candidate_log.py", "selectors/__init__.py", "selectors/", "suggest/",
 )
+
+
+def selector_files(selector: str) -> List[Path]:
+    """The files that can move a selector's numbers: its config's module and the `code_files` its config names
+    (relative to this package), for built-in selectors and those of other packages alike."""
+    import inspect
+
+    from hpgs_ns.selectors.registry import selector_class
+
+    config = selector_class(selector)
+    return [Path(inspect.getfile(config))] + [PACKAGE / rel for rel in config.code_files]
 
 
 def code_hash(selector: Optional[str]) -> str:
     """sha256 of CODE_FILES and the files of `selector` (a registered name; None for reference rows)."""
-    files = list(CODE_FILES)
+    files = {rel: PACKAGE / rel for rel in CODE_FILES}
     if selector is not None:
-        from hpgs_ns.selectors.registry import BUILTIN_SELECTORS
-
-        config = BUILTIN_SELECTORS.get(selector)
-        if config is not None:
-            module = config.__module__.split(".")[-1]
-            files += [f"selectors/{module}.py", *SELECTOR_FILES.get(selector, ())]
+        for path in selector_files(selector):
+            path = path.resolve()
+            files[path.relative_to(PACKAGE).as_posix() if path.is_relative_to(PACKAGE) else path.name] = path
     digest = hashlib.sha256()
-    for rel in sorted(set(files)):
-        path = PACKAGE / rel
+    for rel in sorted(files):
+        path = files[rel]
         digest.update(rel.encode() + b"\0" + (path.read_bytes() if path.is_file() else b"<missing>") + b"\0")
     return digest.hexdigest()[:16]
 

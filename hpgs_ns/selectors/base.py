@@ -9,7 +9,7 @@ them.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Callable, Dict, List, Optional, Protocol, Sequence
+from typing import Callable, ClassVar, Dict, List, Optional, Protocol, Sequence, Tuple
 
 import torch
 from nerfstudio.cameras.cameras import Cameras
@@ -79,8 +79,20 @@ class Selector(Protocol):
 
 @dataclass
 class SelectorConfig(InstantiateConfig):
-    """A selector's options (typed fields become `--pipeline.datamanager.<name>.<option>` flags); `setup()`
-    builds the selector (its `_target`) with them."""
+    """A selector's options (typed fields become `--pipeline.selection.<name>.<option>` flags); `setup()`
+    builds the selector (its `_target`) with them.
+
+    The class variables are the selector's facts that the rest of the package reads (the benchmark, provenance,
+    the candidate log), so a selector registered by another package needs no edit here."""
+
+    uses_preference_model: ClassVar[bool] = False
+    """Scores views with a preference model (`hpgs bench --preference-models` gives it each scene's
+    leave-one-scene-out model; provenance records the model's hash)."""
+    code_files: ClassVar[Tuple[str, ...]] = ()
+    """Files (relative to the `hpgs_ns` package) besides the selector's own module whose change can move its
+    numbers (the benchmark's code hash)."""
+    logged_in_candidate_log: ClassVar[bool] = True
+    """Whether `--pipeline.selection.log-candidate-scores` records this selector's score of every candidate."""
 
     def setup(self, **kwargs) -> Selector:
         return super().setup(**kwargs)

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import List, Optional, Type
+from typing import ClassVar, List, Optional, Tuple, Type
 
 import torch
 
@@ -29,6 +29,11 @@ class BlendSelectorConfig(SelectorConfig):
     """Weighted sum of farthest's and hpgs's z-scored scores (weights fitted on candidate logs)."""
 
     _target: Type = field(default_factory=lambda: BlendSelector)
+    uses_preference_model: ClassVar[bool] = True
+    code_files: ClassVar[Tuple[str, ...]] = (
+        "selectors/preference_features.py", "preference/model.py", "selectors/farthest.py", "selectors/hpgs.py")
+    # A fitted mix of farthest and hpgs, which the log records: logging it too would feed its own fit.
+    logged_in_candidate_log: ClassVar[bool] = False
     # Fitted on every logged scene (fox, juice box, gold cape, campus; seed 1 of the FisherRF protocol):
     # `python benchmarks/candidate_scores.py benchmarks/results/suite --selectors farthest hpgs`.
     farthest_weight: float = 0.437

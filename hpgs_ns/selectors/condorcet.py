@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Optional, Type
+from typing import ClassVar, Optional, Tuple, Type
 
 import torch
 
@@ -25,6 +25,8 @@ class CondorcetSelectorConfig(SelectorConfig):
     """Condorcet winner of Bradley-Terry duels between candidates (the one judged worse most often)."""
 
     _target: Type = field(default_factory=lambda: CondorcetSelector)
+    uses_preference_model: ClassVar[bool] = True
+    code_files: ClassVar[Tuple[str, ...]] = ("selectors/preference_features.py", "preference/model.py")
     model: Optional[Path] = None
     """Preference-model checkpoint; default: the model shipped with hpgs_ns."""
     max_candidates: int = 0

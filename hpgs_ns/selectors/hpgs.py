@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import List, Literal, Optional, Sequence, Type
+from typing import ClassVar, List, Literal, Optional, Sequence, Tuple, Type
 
 import torch
 
@@ -28,6 +28,8 @@ class HpgsSelectorConfig(SelectorConfig):
     """HP-GS: largest cosine distance from the median preference feature of the active views."""
 
     _target: Type = field(default_factory=lambda: HpgsSelector)
+    uses_preference_model: ClassVar[bool] = True
+    code_files: ClassVar[Tuple[str, ...]] = ("selectors/preference_features.py", "preference/model.py")
     model: Optional[Path] = None
     """Preference-model checkpoint (`hpgs train-pref`); default: the cross-scene model shipped with hpgs_ns."""
     aggregate: Literal["median-feature", "median-distance"] = "median-feature"

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Type
+from typing import ClassVar, Type
 
 import torch
 
@@ -15,6 +15,8 @@ class RandomSelectorConfig(SelectorConfig):
     """Uniformly random candidates, drawn from the datamanager's seeded generator (so `--seed` fixes them)."""
 
     _target: Type = field(default_factory=lambda: RandomSelector)
+    # Its scores are all equal: nothing for the candidate log to record.
+    logged_in_candidate_log: ClassVar[bool] = False
 
 
 class RandomSelector:

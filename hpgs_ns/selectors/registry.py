@@ -1,4 +1,4 @@
-"""The selector registry: every name `--pipeline.datamanager.selector` accepts, and its options.
+"""The selector registry: every name `--pipeline.selection.selector` accepts, and its options.
 
 Built-in selectors are listed here. Selectors of other packages register through the `hpgs_ns.selectors`
 entry point group, so adding one needs no edit of this package; in the plugin's pyproject.toml:
@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import copy
 from importlib.metadata import entry_points
-from typing import Dict, List, Type
+from typing import Dict, List, Literal, Type
 
 from hpgs_ns.selectors.base import SelectionError, SelectorConfig
 from hpgs_ns.selectors.blend import BlendSelectorConfig
@@ -65,3 +65,13 @@ def selector_config(name: str) -> SelectorConfig:
     if not callable(getattr(config, "setup", None)):
         raise SelectionError(f"selector {name!r} ({plugins[name].value}) is not a SelectorConfig; its entry point must name one")  # type: ignore[attr-defined]
     return config
+
+
+# Every registered selector, built-in or from another package's entry point, as a type tyro can offer as choices
+# (read once, when this module is imported).
+SelectorName = Literal[tuple(selector_names())]  # type: ignore[valid-type]
+
+
+def selector_class(name: str) -> Type[SelectorConfig]:
+    """The config class of selector `name`: where its facts are (`SelectorConfig`'s class variables)."""
+    return BUILTIN_SELECTORS[name] if name in BUILTIN_SELECTORS else type(selector_config(name))

@@ -108,8 +108,8 @@ def load_run(config_path: Path) -> Run:
     root = Path(dm.config.dataparser.data)
     names = list(getattr(dm, "image_names", None) or [view_name(p, root) for p in dm.train_dataset.image_filenames])
     trained = sorted(getattr(dm, "active", range(len(dm.train_dataset))))
-    selector = getattr(dm.config, "selector", "hpgs")
-    return Run(config, pipeline, config_path.parent, list(trained), names, selector)
+    selection = getattr(config.pipeline, "selection", None)  # an hpgs run's selection options (None: splatfacto)
+    return Run(config, pipeline, config_path.parent, list(trained), names, selection.selector if selection else "hpgs")
 
 
 def candidate_poses(run: Run, args: Suggest) -> Tuple[torch.Tensor, List[float], cand.Layout]:
@@ -189,8 +189,8 @@ def suggest(run: Run, args: Suggest) -> Dict:
     combined = _concat(trained, cameras[torch.tensor(pool, dtype=torch.long)])
     n = len(run.trained)
     name = args.selector or run.selector
-    config = getattr(dm.config, name, None) if hasattr(dm.config, "selector") else None
-    selector = (config if config is not None and hasattr(config, "setup") else selector_config(name)).setup()
+    selection = getattr(run.config.pipeline, "selection", None)
+    selector = (selection.selector_config(name) if selection is not None else selector_config(name)).setup()
     context = SelectionContext(
         step=int(getattr(model, "step", 0)), round_index=0, active=list(range(n)),
         candidates=list(range(n, n + len(pool))), num_to_pick=min(args.num, len(pool)), cameras=combined,

@@ -1,7 +1,8 @@
 """An analysis log of every round: every selector's score of every candidate, beside an oracle.
 
-With `--pipeline.datamanager.log-candidate-scores True`, after each round (its choice already made, so nothing here
-can change it) every built-in selector but `random` scores the candidates the round saw, and each candidate's
+With `--pipeline.selection.log-candidate-scores True`, after each round (its choice already made, so nothing here
+can change it) every registered selector whose config says `logged_in_candidate_log` (all but `random` and `blend`)
+scores the candidates the round saw, and each candidate's
 current render is measured against its withheld photo (PSNR, SSIM, LPIPS): the error a selector tries to guess
 without the photo. `candidate_scores.jsonl` in the run folder gets one line per round. It is for tuning selectors
 offline, leave one scene out (`benchmarks/candidate_scores.py`); a run never reads it back. The random stream is
@@ -17,7 +18,13 @@ from typing import Any, Dict, List
 
 import torch
 
-LOGGED_SELECTORS = ("farthest", "fisher", "hpgs", "condorcet")
+from hpgs_ns.selection.records import RoundRecord
+from hpgs_ns.selectors import registry
+
+
+def logged_selectors() -> List[str]:
+    """Every registered selector the log scores candidates with (`logged_in_candidate_log`), in the registry's order."""
+    return [name for name in registry.selector_names() if registry.selector_class(name).logged_in_candidate_log]
 
 
 class CandidateLog:
@@ -28,12 +35,12 @@ class CandidateLog:
         self.selectors: Dict[str, Any] = {}
 
     def selector(self, name: str):
-        """The run's own options of each built-in selector, set up once."""
+        """The run's own options of each selector, set up once."""
         if name not in self.selectors:
-            self.selectors[name] = getattr(self.rounds.config, name).setup()
+            self.selectors[name] = self.rounds.config.selector_config(name).setup()
         return self.selectors[name]
 
-    def on_round(self, record: Dict[str, Any]) -> None:
+    def on_round(self, record: RoundRecord) -> None:
         if self.rounds.run_dir is None:
             return
         with torch.random.fork_rng(devices=[torch.device(self.rounds.model.device)] if torch.cuda.is_available() else []):
@@ -43,23 +50,23 @@ class CandidateLog:
             f.write(json.dumps(line) + "\n")
 
     @torch.no_grad()
-    def measure(self, record: Dict[str, Any]) -> Dict[str, Any]:
+    def measure(self, record: RoundRecord) -> Dict[str, Any]:
         from hpgs_ns.metrics import lpips, photo_rgb, psnr, ssim
 
         dm, model = self.rounds.datamanager, self.rounds.model
-        chosen = list(record["chosen_indices"])
+        chosen = list(record.chosen_indices)
         # The round as the selector saw it: before its picks joined the active set.
-        context = self.rounds.context(record["step"])
+        context = self.rounds.context(record.step)
         context.active = [i for i in context.active if i not in chosen]
         context.candidates = sorted(context.candidates + chosen)
         context.num_to_pick = 1
         names = dm.image_names
         line: Dict[str, Any] = {
-            "step": record["step"], "round": record["round"], "selector": record["selector"],
+            "step": record.step, "round": record.round, "selector": record.selector,
             "chosen": [names[i] for i in chosen], "active": [names[i] for i in context.active],
             "candidates": [names[i] for i in context.candidates], "scores": {}, "seconds": {},
         }
-        for name in LOGGED_SELECTORS:
+        for name in logged_selectors():
             start = time.perf_counter()
             scores = self.selector(name).select(context).scores
             line["scores"][name] = [float(scores.get(c, float("nan"))) for c in context.candidates]

@@ -6,9 +6,9 @@ rounds have run or the pool is empty. Rounds run from a BEFORE_TRAIN_ITERATION c
 densification reads state left by the last training render (`model.info`), so nothing may be rendered between
 backward and the strategy step.
 
-The datamanager owns which views are active (and saves them, with the round history, in every checkpoint); the
-model owns rendering; the selector owns scoring. This class asks each for its part. Its options are the
-datamanager's (`--pipeline.datamanager.select-every`, ...), where users have always set them.
+The datamanager owns which views are active (and saves them, with the round records, in every checkpoint); the
+model owns rendering; the selector owns scoring. This class asks each for its part. Its options are
+`hpgs_ns.selection.config.SelectionConfig` (`--pipeline.selection.*`).
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from __future__ import annotations
 import math
 import time
 from pathlib import Path
-from typing import Any, Callable, Dict, List, Optional, Tuple
+from typing import Callable, Dict, List, Optional, Tuple
 
 import numpy as np
 import torch
@@ -25,10 +25,12 @@ from nerfstudio.utils import writer
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from hpgs_ns.atomic_write import write_json_atomic
-from hpgs_ns.candidate_log import CandidateLog
 from hpgs_ns.early_stop import GainModel
 from hpgs_ns.errors import UserError
 from hpgs_ns.schedules import restart_schedules
+from hpgs_ns.selection.candidate_log import CandidateLog
+from hpgs_ns.selection.records import RoundRecord, StopRecord
+from hpgs_ns.selection.schedule import Every, run_steps
 from hpgs_ns.selectors.base import Selection, SelectionContext, SelectionError, Selector, check_selection
 
 
@@ -39,20 +41,22 @@ class RoundError(UserError, RuntimeError):
 class SelectionRounds:
     """Runs the selection rounds of one training run (see the module docstring)."""
 
-    def __init__(self, datamanager, model, selector: Optional[Selector] = None) -> None:
+    def __init__(self, config, datamanager, model, selector: Optional[Selector] = None) -> None:
+        self.config = config
+        """`SelectionConfig`."""
         self.datamanager = datamanager
         self.model = model
-        self.config = datamanager.config
-        self.selector: Selector = selector if selector is not None else self.config.selector_config().setup()
+        self.seed = int(datamanager.config.seed)
+        self.schedule = Every(config.select_every, config.select_at)
+        self.selector: Selector = selector if selector is not None else config.selector_config().setup()
         self.run_dir: Optional[Path] = None
         # Called with each round's record once it is logged (the viewer redraws the roles).
-        self.listeners: List[Callable[[Dict[str, Any]], None]] = []
-        if getattr(self.config, "log_candidate_scores", False):
+        self.listeners: List[Callable[[RoundRecord], None]] = []
+        if config.log_candidate_scores:
             self.listeners.append(CandidateLog(self).on_round)
-        threshold = getattr(self.config, "stop_when_gain_below", None)
-        self.gain_model = GainModel.load(getattr(self.config, "gain_model", None)) if threshold is not None else None
-        self.stopped: Optional[Dict[str, Any]] = None
-        """Why selection stopped early (step, views, predicted gain), once it has."""
+        self.gain_model = GainModel.load(config.gain_model) if config.stop_when_gain_below is not None else None
+        self.stopped: Optional[StopRecord] = None
+        """Why selection stopped early, once it has."""
         self.psnr_without_round: Dict[int, float] = {}
         """eval-each-round: test PSNR at scheduled steps where no round ran (this process's only)."""
 
@@ -60,20 +64,14 @@ class SelectionRounds:
 
     def is_scheduled(self, step: int) -> bool:
         """Whether `step` is on the round schedule (select-at, or a multiple of select-every), rounds left or not."""
-        if self.config.select_at:
-            return step in self.config.select_at
-        return step > 0 and self.config.select_every > 0 and step % self.config.select_every == 0
+        return step in self.schedule
 
     def is_round_step(self, step: int) -> bool:
         """True when a selection round is due at `step`."""
-        every = self.config.select_every
-        if self.config.select_at:
-            if step not in self.config.select_at:
-                return False
-        elif step <= 0 or every <= 0 or step % every != 0:
+        if step not in self.schedule:
             return False
         history = self.datamanager.history
-        done = {h["step"] for h in history}
+        done = {h.step for h in history}
         due = step not in done and len(history) < self.config.max_rounds and bool(self.datamanager.candidates)
         return due and self.stopped is None and not self._stop_before(step)
 
@@ -89,8 +87,7 @@ class SelectionRounds:
         if gain is None or gain >= self.config.stop_when_gain_below:
             return False
         views = len(self.datamanager.active)
-        self.stopped = {"step": int(step), "views": views, "predicted_gain_db": gain,
-                        "threshold_db": float(self.config.stop_when_gain_below)}
+        self.stopped = StopRecord(int(step), views, float(gain), float(self.config.stop_when_gain_below))
         CONSOLE.print(f"[bold]selection stops at step {step}[/bold]: the next view is predicted to gain {gain:.2f} dB "
                       f"(< stop-when-gain-below {self.config.stop_when_gain_below:g}); {views} views")
         self.write_log()
@@ -105,15 +102,14 @@ class SelectionRounds:
         left = cfg.max_rounds - len(dm.history)
         if left <= 0:
             return 0, f"all {cfg.max_rounds} rounds already ran"
+        steps = self.schedule.between(first_step, end_step)
         if cfg.select_at:
-            steps = [s for s in cfg.select_at if first_step <= s < end_step and s > 0]
             too_late = f"only {len(steps)} select-at steps come before the last step ({end_step - 1})"
         elif cfg.select_every > 0:
-            steps = [s for s in range(cfg.select_every, end_step, cfg.select_every) if s >= first_step]
             too_late = f"select-every {cfg.select_every} leaves {len(steps)} round steps before the last step ({end_step - 1})"
         else:
-            steps, too_late = [], f"select-every {cfg.select_every} and no select-at"
-        done = {h["step"] for h in dm.history}
+            too_late = f"select-every {cfg.select_every} and no select-at"
+        done = {h.step for h in dm.history}
         steps = [s for s in steps if s not in done]
         candidates = len(dm.candidates)
         pool = math.ceil(candidates / max(cfg.views_per_round, 1))
@@ -132,9 +128,9 @@ class SelectionRounds:
         trainer = attrs.trainer
         if trainer is not None and getattr(trainer, "base_dir", None) is not None:
             self.run_dir = Path(trainer.base_dir)
+        first, end = run_steps(trainer) if trainer is not None else (0, 0)
         if trainer is not None:
-            start = int(getattr(trainer, "_start_step", 0))
-            count, why = self.plan(start, start + int(trainer.config.max_num_iterations))
+            count, why = self.plan(first, end)
             gain = self.predicted_gain()
             if gain is not None:
                 CONSOLE.print(f"stop-when-gain-below {self.config.stop_when_gain_below:g} dB: the first round is predicted "
@@ -146,7 +142,7 @@ class SelectionRounds:
             self.model.keep_initial_for_resets()
 
         def before_iteration(step: int) -> None:
-            if step == getattr(trainer, "_start_step", 0):
+            if step == first:
                 self.write_log()
             if self.is_round_step(step):
                 self.run_round(step)
@@ -159,9 +155,8 @@ class SelectionRounds:
 
         callbacks = [TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], before_iteration)]
         if trainer is not None:
-            last = trainer.config.max_num_iterations - 1
             callbacks.append(
-                TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], lambda step: self.write_log(), iters=(last,))
+                TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], lambda step: self.write_log(), iters=(end - 1,))
             )
         return callbacks
 
@@ -172,7 +167,7 @@ class SelectionRounds:
         dm, model = self.datamanager, self.model
         candidates = dm.candidates
         cameras = dm.train_dataset.cameras
-        short = self.config.selection_short_side
+        short = self.config.render_short_side
         return SelectionContext(
             step=step,
             round_index=len(dm.history),
@@ -184,7 +179,7 @@ class SelectionRounds:
             model=model,
             render=lambda idx, short_side=short: model.render_views(cameras[torch.tensor([int(i) for i in idx], dtype=torch.long)], short_side),
             # Derived from (seed, round) so a resumed run makes the same choices as an uninterrupted one.
-            generator=torch.Generator().manual_seed(self.config.seed * 1_000_003 + len(dm.history)),
+            generator=torch.Generator().manual_seed(self.seed * 1_000_003 + len(dm.history)),
             device=torch.device(model.device),
         )
 
@@ -200,23 +195,22 @@ class SelectionRounds:
         seconds = time.perf_counter() - start
         names = dm.image_names
         dm.activate(selection.indices)
-        record: Dict[str, Any] = {
-            "round": len(dm.history) + 1,
-            "step": int(step),
-            "selector": self.config.selector,
-            "chosen": [names[i] for i in selection.indices],
-            "chosen_indices": [int(i) for i in selection.indices],
-            "seconds": float(seconds),
-            "num_active": len(dm.active),
-            "test_psnr_before": test_psnr,
-            "reset": False,
-            "scores": {names[i]: float(s) for i, s in selection.scores.items()},
-            "work": {k: float(v) for k, v in selection.work.items()},
-        }
+        record = RoundRecord(
+            round=len(dm.history) + 1,
+            step=int(step),
+            selector=self.config.selector,
+            chosen=[names[i] for i in selection.indices],
+            chosen_indices=[int(i) for i in selection.indices],
+            seconds=float(seconds),
+            num_active=len(dm.active),
+            test_psnr_before=test_psnr,
+            scores={names[i]: float(s) for i, s in selection.scores.items()},
+            work={k: float(v) for k, v in selection.work.items()},
+        )
         dm.history.append(record)
         CONSOLE.print(
-            f"[bold green]View selection round {record['round']} at step {step}[/bold green]: "
-            f"+ {', '.join(record['chosen'])} ({self.config.selector}, {seconds:.2f} s, {len(dm.active)} active)"
+            f"[bold green]View selection round {record.round} at step {step}[/bold green]: "
+            f"+ {', '.join(record.chosen)} ({self.config.selector}, {seconds:.2f} s, {len(dm.active)} active)"
         )
         writer.put_scalar("selection/seconds", seconds, step)
         writer.put_scalar("selection/num_active", len(dm.active), step)
@@ -235,9 +229,9 @@ class SelectionRounds:
         before = model.num_points
         model.reset_to_initial(step, optimizers.optimizers)
         restart_schedules(optimizers)
-        self.datamanager.history[-1].update(
-            reset=True, num_gaussians_before_reset=int(before), num_gaussians_after_reset=int(model.num_points)
-        )
+        record = self.datamanager.history[-1]
+        record.reset = True
+        record.num_gaussians_before_reset, record.num_gaussians_after_reset = int(before), int(model.num_points)
         CONSOLE.print(f"reset after add: {before} -> {model.num_points} Gaussians, schedules restart at step {step}")
         writer.put_scalar("selection/num_gaussians_before_reset", before, step)
         self.write_log()
@@ -265,29 +259,29 @@ class SelectionRounds:
         names = dm.image_names
         payload = {
             "selector": self.config.selector,
-            "seed": self.config.seed,
+            "seed": self.seed,
             "reset_after_add": self.config.reset_after_add,
             "initial": [names[i] for i in dm.initial_views],
-            "rounds": dm.history,
+            "rounds": [record.to_dict() for record in dm.history],
             "active": [names[i] for i in dm.active],
             "withheld": [names[i] for i in dm.candidates],
             "test": dm.test_view_names,
             "peak_gpu_memory_mb": torch.cuda.max_memory_allocated() / 2**20 if torch.cuda.is_available() else None,
-            "stopped": self.stopped,
+            "stopped": self.stopped.to_dict() if self.stopped is not None else None,
             "test_psnr_at_round_steps": self.test_psnr_at_round_steps(),
         }
         return write_json_atomic(self.run_dir / "selected_views.json", payload)
 
     def test_psnr_at_round_steps(self) -> Dict[str, float]:
         """eval-each-round: the test PSNR at every scheduled step, before its round if one ran ({str(step): dB})."""
-        values = {int(h["step"]): h["test_psnr_before"] for h in self.datamanager.history if h.get("test_psnr_before") is not None}
+        values = {h.step: h.test_psnr_before for h in self.datamanager.history if h.test_psnr_before is not None}
         values.update(self.psnr_without_round)
         return {str(k): float(values[k]) for k in sorted(values)}
 
     def _log_chosen_render(self, index: int, step: int) -> None:
         try:
             cameras = self.datamanager.train_dataset.cameras[torch.tensor([int(index)], dtype=torch.long)]
-            image = self.model.render_views(cameras, self.config.selection_short_side)[0]
+            image = self.model.render_views(cameras, self.config.render_short_side)[0]
             writer.put_image("selection/chosen_view", image.cpu(), step)
         except Exception as err:  # logging must never stop training
             CONSOLE.print(f"[yellow]could not log the chosen view's render: {err}")

@@ -16,15 +16,17 @@ import torch
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
 
 from hpgs_ns.atomic_write import write_json_atomic
+from hpgs_ns.selection.schedule import Every, run_steps
 
 
 class Snapshots:
-    """Writes the snapshots of one training run (`--pipeline.datamanager.snapshot-every N`)."""
+    """Writes the snapshots of one training run (`--pipeline.selection.snapshot-every N`)."""
 
-    def __init__(self, datamanager, model) -> None:
+    def __init__(self, every: int, datamanager, model) -> None:
         self.datamanager = datamanager
         self.model = model
-        self.every = int(datamanager.config.snapshot_every)
+        self.every = int(every)
+        self.schedule = Every(self.every)
         self.run_dir: Optional[Path] = None
 
     def callbacks(self, attrs: TrainingCallbackAttributes) -> List[TrainingCallback]:
@@ -36,18 +38,18 @@ class Snapshots:
             self.run_dir = Path(trainer.base_dir)
 
         def before_iteration(step: int) -> None:
-            if step > 0 and step % self.every == 0:
+            if step in self.schedule:
                 self.write(step)
 
         callbacks = [TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], before_iteration)]
         if trainer is not None:
-            last = trainer.config.max_num_iterations - 1
+            _, end = run_steps(trainer)
 
             def after_training(step: int) -> None:
-                if (step + 1) % self.every == 0:
+                if step + 1 in self.schedule:
                     self.write(step + 1)
 
-            callbacks.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], after_training, iters=(last,)))
+            callbacks.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], after_training, iters=(end - 1,)))
         return callbacks
 
     def write(self, step: int) -> Optional[Path]:

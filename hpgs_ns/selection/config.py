@@ -1,0 +1,137 @@
+"""The selection loop's options: `--pipeline.selection.*` on the `ns-train hpgs` command line.
+
+Which views are active at step 0 (and the split) is the datamanager's business; when rounds run, which selector
+scores the withheld views, and what the loop records, is this config's. `setup()` builds the loop
+(`hpgs_ns.selection.rounds.SelectionRounds`).
+
+Up to hpgs-ns 0.2 these options sat on the datamanager (`--pipeline.datamanager.selector`, ...): that spelling
+still works, with a warning (`take_datamanager_options`), and config.yml files of 0.1 and 0.2 are read the same way.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Any, Dict, Optional, Tuple, Type
+
+from nerfstudio.configs.base_config import InstantiateConfig
+from nerfstudio.utils.rich_utils import CONSOLE
+
+from hpgs_ns.selectors import (
+    BlendSelectorConfig,
+    CondorcetSelectorConfig,
+    FarthestSelectorConfig,
+    FisherSelectorConfig,
+    HpgsSelectorConfig,
+    RandomSelectorConfig,
+    SelectorConfig,
+    registry,
+)
+from hpgs_ns.selectors.registry import SelectorName
+
+
+def _rounds():
+    from hpgs_ns.selection.rounds import SelectionRounds
+
+    return SelectionRounds
+
+
+@dataclass
+class SelectionConfig(InstantiateConfig):
+    """When selection rounds run, which selector picks the views, and what the loop records."""
+
+    _target: Type = field(default_factory=_rounds)
+    selector: SelectorName = "hpgs"
+    """Which selector picks the next views (default: the paper's human-preference selector). Other packages add
+    selectors through the `hpgs_ns.selectors` entry point group."""
+    select_every: int = 2000
+    """A selection round runs at steps select_every, 2*select_every, ... (never at step 0)."""
+    select_at: Tuple[int, ...] = ()
+    """Explicit round steps (e.g. FisherRF's 400 900 1500 ...); when given, select-every is ignored."""
+    views_per_round: int = 1
+    """Views added per round (greedy batch selection when > 1)."""
+    max_rounds: int = 7
+    """Rounds before selection stops (HP-GS: 7 additions over 15000 steps)."""
+    # One option group per built-in selector (registry.BUILTIN_SELECTORS); plugins' options come from the registry.
+    random: RandomSelectorConfig = field(default_factory=RandomSelectorConfig)
+    """Options of the `random` selector."""
+    farthest: FarthestSelectorConfig = field(default_factory=FarthestSelectorConfig)
+    """Options of the `farthest` selector."""
+    fisher: FisherSelectorConfig = field(default_factory=FisherSelectorConfig)
+    """Options of the `fisher` selector (FisherRF)."""
+    hpgs: HpgsSelectorConfig = field(default_factory=HpgsSelectorConfig)
+    """Options of the `hpgs` selector (the paper's method)."""
+    condorcet: CondorcetSelectorConfig = field(default_factory=CondorcetSelectorConfig)
+    """Options of the `condorcet` selector (the paper's ablation)."""
+    blend: BlendSelectorConfig = field(default_factory=BlendSelectorConfig)
+    """Options of the `blend` selector (farthest + hpgs, weights fitted on candidate logs)."""
+    eval_each_round: bool = False
+    """Measure test-view PSNR just before each round (recorded in selected_views.json; used by `hpgs bench`)."""
+    stop_when_gain_below: Optional[float] = None
+    """Stop selecting once the next view's predicted test-PSNR gain (dB) is below this (`hpgs_ns.selection.early_stop`;
+    default: every round runs): views a scene does not need are not added."""
+    gain_model: Optional[Path] = None
+    """The gain calibration for stop-when-gain-below (`benchmarks/early_stop.py --write-model`; default:
+    hpgs_ns/assets/gain-model.json, fitted on the suite's FisherRF-protocol runs)."""
+    log_candidate_scores: bool = False
+    """After each round, log every registered selector's score of every candidate and each candidate's render error
+    against its withheld photo to candidate_scores.jsonl (analysis only: never read by the run, and its random
+    stream is left as it was)."""
+    snapshot_every: int = 0
+    """If > 0, every this many steps (and at the last step) render every training-split view to
+    `<run dir>/snapshots/step-NNNNNN/` (what `hpgs collect` labels). Test views are never rendered."""
+    render_short_side: Optional[int] = None
+    """Default render size (short side, pixels) for selectors that render views; None = dataset resolution."""
+    reset_after_add: bool = False
+    """After each round, start training over from the new view set, as FisherRF (Jiang et al., ECCV 2024) does:
+    the Gaussians go back to the step-0 ones, optimizer moments, densification state and camera optimizer are
+    cleared, and learning rates and splatfacto's step-keyed schedule (densification, opacity reset, SH degree,
+    resolution) restart at the round's step. The trainer's step keeps counting; the run ends at
+    max-num-iterations."""
+
+    def selector_config(self, name: Optional[str] = None) -> SelectorConfig:
+        """The options of selector `name` (default: the chosen one): its group above for a built-in one, else the
+        registry's defaults."""
+        name = self.selector if name is None else name
+        own = getattr(self, name, None)
+        return own if isinstance(own, SelectorConfig) else registry.selector_config(name)
+
+
+# Options that moved from the datamanager to `--pipeline.selection` in 0.3: old name -> new name.
+MOVED_FROM_DATAMANAGER: Dict[str, str] = {
+    **{name: name for name in ("selector", "select_every", "select_at", "views_per_round", "max_rounds",
+                               "eval_each_round", "stop_when_gain_below", "gain_model", "log_candidate_scores",
+                               "snapshot_every", "reset_after_add")},
+    "selection_short_side": "render_short_side",
+}
+MOVED_GROUPS: Tuple[str, ...] = tuple(registry.BUILTIN_SELECTORS)
+
+
+def take_datamanager_options(datamanager: Any, selection: SelectionConfig, warn: bool = True) -> Dict[str, str]:
+    """Move the selection options set on the datamanager (the 0.2 spelling, or a 0.1/0.2 config.yml) into
+    `selection`, leaving the datamanager's copies unset. Returns {old flag: new flag} of what moved; warns once per
+    call when `warn` (a command line or script in the old spelling)."""
+    moved: Dict[str, str] = {}
+    for old, new in MOVED_FROM_DATAMANAGER.items():
+        value = getattr(datamanager, old, None)
+        if value is None:
+            continue
+        setattr(selection, new, value)
+        setattr(datamanager, old, None)
+        moved[f"--pipeline.datamanager.{old.replace('_', '-')}"] = f"--pipeline.selection.{new.replace('_', '-')}"
+    for group in MOVED_GROUPS:
+        value = getattr(datamanager, group, None)
+        # The datamanager keeps a default group (tyro needs one to parse the old flags); only a changed one moves.
+        if isinstance(value, SelectorConfig) and value != type(value)():
+            setattr(selection, group, value)
+            setattr(datamanager, group, type(value)())
+            moved[f"--pipeline.datamanager.{group}.*"] = f"--pipeline.selection.{group}.*"
+    if moved and warn:
+        spelled = ", ".join(f"{old} -> {new}" for old, new in moved.items())
+        CONSOLE.print(f"[yellow]deprecated option spelling (hpgs-ns 0.3 moved the selection options): {spelled}",
+                      soft_wrap=True)
+    return moved
+
+
+def selection_field_names() -> Tuple[str, ...]:
+    return tuple(f.name for f in fields(SelectionConfig) if f.name != "_target")
