@@ -1,4 +1,4 @@
-"""Screenshot of `ns-viewer --load-config RUN/config.yml` in headless Chromium (the README's docs/viewer-selection.png).
+"""Screenshot of `ns-viewer --load-config RUN/config.yml` in headless Chromium (docs/viewer-selection.png, shown in the README).
 
     python scripts/viewer_screenshot.py RUN/config.yml docs/viewer-selection.png --highlight 2
 

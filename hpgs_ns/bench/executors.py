@@ -35,10 +35,10 @@ class ExecutorConfig:
     """Run locally, as Ray tasks, or as Slurm jobs (the last two need `pip install 'hpgs-ns[cluster]'`)."""
     runs_per_gpu: int = 4
     """Runs sharing one GPU at a time (one small-scene run leaves an H100 half idle): `local` runs this many on
-    every visible GPU (CPU-only: one run at a time), Ray reserves 1/N GPU per run, Slurm runs N per job. Measured
-    on an H100, FisherRF protocol at ~400x300 (README): 13.3 runs/hour alone, 21.2 with 2, 24.8-28.0 with 4,
-    28.2 with 8, so 4 (most of 8's throughput at half its latency). Wall and per-step times of concurrent runs
-    are not those of a run alone: the report keeps timing columns from solo runs (`--runs-per-gpu 1`)."""
+    every visible GPU (CPU-only: one run at a time), Ray reserves 1/N GPU per run, Slurm runs N per job. 4 gives
+    most of 8's throughput at half its latency (measured: docs/benchmark.md, "Full GPUs and throughput"). Wall
+    and per-step times of concurrent runs are not those of a run alone: the report keeps timing columns from solo
+    runs (`--runs-per-gpu 1`)."""
     local_workers: Optional[int] = None
     """Concurrent runs for `local`: default `runs_per_gpu` per visible CUDA GPU (each sees only its own), else 1."""
     ray_address: Optional[str] = None

@@ -5,10 +5,7 @@ Each candidate gets farthest's score (distance from its camera centre to the nea
 candidates of the round and the weighted sum picks. The weights come from offline logs, not GPU sweeps:
 `hpgs bench --log-candidate-scores` records every selector's score of every candidate beside the candidate's
 render error against its withheld photo, and `benchmarks/candidate_scores.py --selectors farthest hpgs` fits
-the weights that best predict that error. Judged leave one scene out on five suite scenes (528 rounds), the
-blend's top pick sits at the 0.85 percentile of render error, against 0.80 for farthest and 0.75 for hpgs alone;
-on the one scene logged after this pair was chosen, 0.846 against farthest's 0.836 (README, "A selector from the
-candidate logs"). Its cost is hpgs's: the Fisher score would add ~1 s per round for no gain in that test.
+the weights that best predict that error, leave one scene out (how well they do: docs/selectors.md, `blend`).
 """
 
 from __future__ import annotations
