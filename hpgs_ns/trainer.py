@@ -6,15 +6,15 @@
   `hpgs` pipeline when it is trained again (`--load-config`), so its selection rounds still run.
 
 `--final-eval-json PATH` writes what stock `ns-eval --output-path PATH` would write for the final checkpoint
-(the same `get_average_eval_image_metrics(get_std=True)` call on the same weights), from the training process:
-it saves `ns-eval`'s ~15 s of start-up per run, which `hpgs bench` pays hundreds of times.
+(the same `get_average_eval_image_metrics(get_std=True)` call on the same weights) and each test view's metrics,
+from the training process: it saves `ns-eval`'s ~15 s of start-up per run, which `hpgs bench` pays hundreds of times.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Optional, Type
+from typing import Dict, List, Optional, Type
 
 from nerfstudio.engine.trainer import Trainer, TrainerConfig
 from nerfstudio.utils.rich_utils import CONSOLE
@@ -69,12 +69,31 @@ class HpgsTrainer(Trainer):
 
 
 def write_final_eval(trainer: Trainer, path: Path) -> Path:
-    """`ns-eval`'s output for the trainer's current weights (what `_after_train` saves as the final checkpoint)."""
-    metrics = trainer.pipeline.get_average_eval_image_metrics(step=trainer.step, get_std=True)
+    """`ns-eval`'s output for the trainer's current weights (what `_after_train` saves as the final checkpoint),
+    plus each test view's own metrics (`test_views`: name, psnr, ssim, lpips, in the test split's order)."""
+    pipeline = trainer.pipeline
+    model = pipeline.model
+    per_view: List[Dict[str, float]] = []
+    score_view = model.get_image_metrics_and_images
+
+    def recording(outputs, batch):
+        metrics_dict, images = score_view(outputs, batch)
+        per_view.append({k: float(v) for k, v in metrics_dict.items()})
+        return metrics_dict, images
+
+    # nerfstudio averages the views' metrics without returning them: record each as it is scored (this call only).
+    model.get_image_metrics_and_images = recording
+    try:
+        metrics = pipeline.get_average_eval_image_metrics(step=trainer.step, get_std=True)
+    finally:
+        del model.get_image_metrics_and_images
+    names = list(getattr(pipeline.datamanager, "test_view_names", []))
+    test_views = [{"name": n, **m} for n, m in zip(names, per_view)] if len(names) == len(per_view) else []
     payload = {
         "experiment_name": trainer.config.experiment_name,
         "method_name": trainer.config.method_name,
         "checkpoint": str(trainer.checkpoint_dir / f"step-{trainer.step:09d}.ckpt"),
         "results": metrics,
+        "test_views": test_views,
     }
     return write_json_atomic(path, payload)

@@ -148,5 +148,9 @@ def test_stock_ns_eval_and_ns_viewer_open_the_checkpoint(trained, tmp_path):
     quality = ("psnr", "psnr_std", "ssim", "ssim_std", "lpips", "lpips_std")  # the rest are timings
     assert [final["results"][k] for k in quality] == pytest.approx([results[k] for k in quality], rel=1e-6, abs=1e-7)
     assert Path(final["checkpoint"]).name == Path(stock["checkpoint"]).name
+    # each test view's own metrics, which average to ns-eval's
+    views = final["test_views"]
+    assert [v["name"] for v in views] == trained["trainer"].pipeline.datamanager.test_view_names
+    assert sum(v["psnr"] for v in views) / len(views) == pytest.approx(results["psnr"], rel=1e-6)
 
     stock_ns_viewer_page(config, env)

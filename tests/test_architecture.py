@@ -108,7 +108,7 @@ LAYERS = (
     ("selectors", ("hpgs_ns.selectors",)),
     ("round records", ("hpgs_ns.selection.records", "hpgs_ns.selection.schedule")),
     ("training parts", ("hpgs_ns.model", "hpgs_ns.datamanager", "hpgs_ns.viewer")),
-    ("selection loop", ("hpgs_ns.selection", "hpgs_ns.early_stop")),
+    ("selection loop", ("hpgs_ns.selection",)),
     ("pipeline", ("hpgs_ns.pipeline",)),
     ("trainer", ("hpgs_ns.trainer",)),
     ("method", ("hpgs_ns.method_config",)),

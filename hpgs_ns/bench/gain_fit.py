@@ -24,7 +24,7 @@ import numpy as np
 
 from hpgs_ns.bench.names import INITIAL
 from hpgs_ns.bench.results import RunResult
-from hpgs_ns.early_stop import ALL, GainModel
+from hpgs_ns.selection.early_stop import ALL, GainModel
 
 
 @dataclass(frozen=True)

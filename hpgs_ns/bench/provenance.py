@@ -22,13 +22,14 @@ from typing import Dict, List, Optional
 from hpgs_ns.bench.names import REFERENCES
 
 PACKAGE = Path(__file__).resolve().parent.parent
+INSTALLED = PACKAGE  # where this package's modules are imported from (PACKAGE is the tree hashed)
 
 # Files (relative to hpgs_ns/) whose change can change any run's numbers.
 CODE_FILES = (
-    "cpu_raster.py", "datamanager.py", "dataparser.py", "early_stop.py", "metrics.py", "method_config.py", "model.py",
+    "cpu_raster.py", "datamanager.py", "dataparser.py", "metrics.py", "method_config.py", "model.py",
     "offline_weights.py", "pipeline.py", "schedules.py", "trainer.py",
     "render/pair_render.py", "render/rasterize.py", "render/viewmats.py", "scenes/colmap_model.py", "scenes/synthetic.py",
-    "selection/config.py", "selection/records.py", "selection/rounds.py", "selection/schedule.py",
+    "selection/config.py", "selection/early_stop.py", "selection/records.py", "selection/rounds.py", "selection/schedule.py",
     "selection/snapshots.py", "selectors/base.py", "selectors/registry.py",
 )
 # Everything else: cannot change a run's numbers.
@@ -47,7 +48,10 @@ def selector_files(selector: str) -> List[Path]:
     from hpgs_ns.selectors.registry import selector_class
 
     config = selector_class(selector)
-    return [Path(inspect.getfile(config))] + [PACKAGE / rel for rel in config.code_files]
+    module = Path(inspect.getfile(config)).resolve()
+    if module.is_relative_to(INSTALLED):  # a built-in selector: its file in the tree being hashed
+        module = PACKAGE / module.relative_to(INSTALLED)
+    return [module] + [PACKAGE / rel for rel in config.code_files]
 
 
 def code_hash(selector: Optional[str]) -> str:
@@ -55,7 +59,6 @@ def code_hash(selector: Optional[str]) -> str:
     files = {rel: PACKAGE / rel for rel in CODE_FILES}
     if selector is not None:
         for path in selector_files(selector):
-            path = path.resolve()
             files[path.relative_to(PACKAGE).as_posix() if path.is_relative_to(PACKAGE) else path.name] = path
     digest = hashlib.sha256()
     for rel in sorted(files):

@@ -25,7 +25,7 @@ from nerfstudio.utils import writer
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from hpgs_ns.atomic_write import write_json_atomic
-from hpgs_ns.early_stop import GainModel
+from hpgs_ns.selection.early_stop import GainModel
 from hpgs_ns.errors import UserError
 from hpgs_ns.schedules import restart_schedules
 from hpgs_ns.selection.candidate_log import CandidateLog

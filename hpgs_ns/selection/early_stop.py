@@ -14,9 +14,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple
 
-# Fitted on the suite's FisherRF-protocol runs (benchmarks/early_stop.py --write-model; README "Skip what a scene
-# doesn't need"): another schedule or resolution wants its own.
-DEFAULT_GAIN_MODEL = Path(__file__).resolve().parent / "assets" / "gain-model.json"
+# Fitted on the suite's FisherRF-protocol runs (benchmarks/early_stop.py --write-model; docs/early-stop.md): another
+# schedule or resolution wants its own.
+DEFAULT_GAIN_MODEL = Path(__file__).resolve().parent.parent / "assets" / "gain-model.json"
 ALL = "*"  # the average over selectors
 
 
@@ -45,11 +45,11 @@ class GainModel:
 
         path = Path(path) if path is not None else DEFAULT_GAIN_MODEL
         if not path.is_file():
-            raise UserError(f"no gain model at {path}: pass --pipeline.datamanager.gain-model FILE (fit one with "
-                            "benchmarks/early_stop.py) or drop --pipeline.datamanager.stop-when-gain-below")
+            raise UserError(f"no gain model at {path}: pass --pipeline.selection.gain-model FILE (fit one with "
+                            "benchmarks/early_stop.py) or drop --pipeline.selection.stop-when-gain-below")
         try:
             data = json.loads(path.read_text())
             return cls({k: (float(a), float(b)) for k, (a, b) in data["coefficients"].items()}, list(data.get("fitted_on", [])))
         except (OSError, ValueError, KeyError, TypeError) as err:
             raise UserError(f"gain model {path} is not readable ({err}); fit one with benchmarks/early_stop.py or drop "
-                            "--pipeline.datamanager.stop-when-gain-below") from None
+                            "--pipeline.selection.stop-when-gain-below") from None
