@@ -177,7 +177,7 @@ def test_resuming_with_another_preference_model_or_option_is_refused(tmp_path):
     model = tmp_path / "mine.pt"
     model.write_bytes(b"weights 1")
     bench = Bench(scenes=[scene], out=tmp_path / "out", selectors=["hpgs"], seeds=[0], references=False,
-                  extra_args=f"--pipeline.datamanager.hpgs.model {model}")
+                  extra_args=f"--pipeline.selection.hpgs.model {model}")
     [job] = bench.jobs()
     settings = run_settings(bench, job)
     assert settings["selector_options"]["model"] == str(model) and settings["preference_model"] == provenance.file_hash(model)

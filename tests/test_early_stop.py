@@ -83,7 +83,7 @@ def test_a_run_stops_selecting_when_the_next_view_gains_too_little(tiny_scene, t
 
 
 def test_a_missing_gain_model_is_a_one_line_error(tmp_path):
-    with pytest.raises(UserError, match="no gain model at .*nope.json: pass --pipeline.datamanager.gain-model FILE"):
+    with pytest.raises(UserError, match="no gain model at .*nope.json: pass --pipeline.selection.gain-model FILE"):
         GainModel.load(tmp_path / "nope.json")
 
 

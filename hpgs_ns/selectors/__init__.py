@@ -1,6 +1,6 @@
 """View selectors: one file per selector (a `SelectorConfig` and a class with `select(context) -> Selection`).
 
-`registry` maps `--pipeline.datamanager.selector` names to their configs: the built-in ones, and those other
+`registry` maps `--pipeline.selection.selector` names to their configs: the built-in ones, and those other
 packages register through the `hpgs_ns.selectors` entry point group.
 """
 

@@ -98,9 +98,9 @@ class FisherSelector:
         self.config = config
         self.work: Dict[str, float] = {}
         if config.probes < 1 or config.train_probe_factor < 1 or config.view_batch < 1:
-            raise SelectionError("--pipeline.datamanager.fisher.probes, train-probe-factor and view-batch must be >= 1")
+            raise SelectionError("--pipeline.selection.fisher.probes, train-probe-factor and view-batch must be >= 1")
         if not config.resolution_scale > 0:
-            raise SelectionError("--pipeline.datamanager.fisher.resolution-scale must be > 0")
+            raise SelectionError("--pipeline.selection.fisher.resolution-scale must be > 0")
 
     def param_names(self) -> List[str]:
         return list(FISHER_PARAMS) + (["quats"] if self.config.include_rotations else [])

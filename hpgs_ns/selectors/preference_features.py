@@ -19,7 +19,7 @@ def load_preference_model(path: Optional[Path], device: str = "cpu"):
     path = Path(path) if path is not None else DEFAULT_MODEL
     if not path.is_file():
         hint = "train one with `hpgs train-pref`" if path != DEFAULT_MODEL else "reinstall hpgs-ns"
-        raise SelectionError(f"preference model {path} not found; pass --pipeline.datamanager.hpgs.model PATH or {hint}")
+        raise SelectionError(f"preference model {path} not found; pass --pipeline.selection.hpgs.model PATH or {hint}")
     try:
         # The checkpoint overwrites the modules' random init: fork the RNG so that loading a model (which a
         # preference selector does at set-up) leaves the run's random stream, and so its splat, unchanged.
