@@ -14,12 +14,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from conftest import require_shared
 from PIL import Image
 
-from conftest import require_shared
+from hpgs_ns.errors import UserError
 from hpgs_ns.preference import model as pm
 from hpgs_ns.preference.evaluate import EvalPref, evaluate_pairs
-from hpgs_ns.preference.pairs import (PairsError, image_disjoint_split, images_of, read_pairs, read_usable_pairs)
+from hpgs_ns.preference.pairs import PairsError, image_disjoint_split, images_of, read_pairs, read_usable_pairs
 from hpgs_ns.preference.train import TrainPref, paired_augment
 
 REPO = Path(__file__).resolve().parents[1]
@@ -207,25 +208,24 @@ def test_finetune_trains_and_stores_the_backbone(blur_data, tmp_path):
     ("Image_1,Image_2,Human Preference\n,y.png,1\n", "empty image name"),
     ("Image_1,Image_2,Human Preference,Skipped\nx.png,y.png,1,yes\n", "Skipped"),
 ])
-def test_malformed_csv_gives_one_line_error(tmp_path, capsys, content, expect):
+def test_malformed_csv_gives_one_line_error(tmp_path, content, expect):
     path = tmp_path / "bad.csv"
     path.write_text(content)
     with pytest.raises(PairsError) as info:
         read_pairs(path)
     assert expect in str(info.value) and "\n" not in str(info.value) and str(path) in str(info.value)
-    with pytest.raises(SystemExit):
+    with pytest.raises(UserError, match=r"^hpgs train-pref: ") as info:
         TrainPref(pairs=(path,), out=tmp_path / "m.pt").main()
-    err = capsys.readouterr().err.strip()
-    assert err.count("\n") == 0 and expect in err
+    assert "\n" not in str(info.value) and expect in str(info.value) and str(path) in str(info.value)
+    assert not (tmp_path / "m.pt").exists()
 
 
-def test_missing_image_gives_one_line_error(tmp_path, capsys):
+def test_missing_image_gives_one_line_error(tmp_path):
     Image.new("RGB", (8, 8)).save(tmp_path / "x.png")
     (tmp_path / "p.csv").write_text("Image_1,Image_2,Human Preference\nx.png,gone.png,1\n")
-    with pytest.raises(SystemExit):
+    with pytest.raises(UserError, match=r"^hpgs train-pref: .*missing") as info:
         TrainPref(pairs=(tmp_path / "p.csv",), out=tmp_path / "m.pt").main()
-    err = capsys.readouterr().err.strip()
-    assert "\n" not in err and str(tmp_path / "gone.png") in err and "missing" in err
+    assert "\n" not in str(info.value) and str(tmp_path / "gone.png") in str(info.value)
     assert not (tmp_path / "m.pt").exists()
 
 
@@ -245,10 +245,17 @@ def test_wrong_checkpoints_give_one_line_errors(tmp_path, blur_model, blur_data,
         with pytest.raises(pm.CheckpointError) as info:
             pm.PreferenceModel.load(tmp_path / name)
         assert expect in str(info.value) and "\n" not in str(info.value) and name in str(info.value)
-    with pytest.raises(SystemExit):
+    with pytest.raises(UserError, match=r"^hpgs eval-pref: .*mismatch\.pt.*does not match the vgg16 backbone"):
         EvalPref(model=tmp_path / "mismatch.pt", pairs=(blur_data["fresh"],), json=True).main()
-    captured = capsys.readouterr()
-    assert captured.out == "" and captured.err.count("\n") == 1
+    assert capsys.readouterr().out == ""
+    # The CLI prints it as one `error:` line on stderr, nothing on stdout (--json readers see no half output), exit 1.
+    proc = subprocess.run(
+        [sys.executable, "-m", "hpgs_ns.cli", "eval-pref", "--model", str(tmp_path / "mismatch.pt"), "--pairs",
+         str(blur_data["fresh"]), "--json"],
+        cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)}, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 1 and proc.stdout == ""
+    assert proc.stderr.count("\n") == 1 and proc.stderr.startswith("error: hpgs eval-pref: "), proc.stderr
+    assert "mismatch.pt" in proc.stderr and "does not match the vgg16 backbone" in proc.stderr
 
 
 def test_resnet34_without_cached_weights_says_how_to_proceed(tmp_path, monkeypatch, capsys):
@@ -294,7 +301,7 @@ def test_joined_backbone_with_sqrt_l2_is_the_recipe_search_features_and_survives
         assert torch.allclose(back.score(images), joined.score(images), atol=1e-5)
 
 
-def test_a_checkpoint_from_before_transforms_reads_as_none_and_a_bad_pairing_is_one_line(tmp_path, blur_model, capsys):
+def test_a_checkpoint_from_before_transforms_reads_as_none_and_a_bad_pairing_is_one_line(tmp_path, blur_model):
     ckpt = torch.load(blur_model, weights_only=True)
     ckpt.pop("feature_transform", None)
     torch.save(ckpt, tmp_path / "old.pt")
@@ -303,11 +310,10 @@ def test_a_checkpoint_from_before_transforms_reads_as_none_and_a_bad_pairing_is_
     with pytest.raises(pm.CheckpointError, match="odd.pt: unknown feature transform 'cube-root'"):
         pm.PreferenceModel.load(tmp_path / "odd.pt")
     (tmp_path / "p.csv").write_text("Image_1,Image_2,Human Preference\na.png,b.png,1\nc.png,d.png,0\n")
-    with pytest.raises(SystemExit):
+    with pytest.raises(UserError, match=r"^hpgs train-pref: .*--feature-transform none") as info:
         TrainPref(pairs=(tmp_path / "p.csv",), out=tmp_path / "m.pt", backbone="resnet34", pretrained="none",
                   feature_transform="sqrt-l2").main()
-    err = capsys.readouterr().err.strip()
-    assert "\n" not in err.split("train-pref: ", 1)[-1] and "--feature-transform none" in err
+    assert "\n" not in str(info.value) and not (tmp_path / "m.pt").exists()
 
 
 @pytest.mark.shipped_model

@@ -9,13 +9,16 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from nerfstudio.data.utils import colmap_parsing_utils as colmap_utils
 from conftest import run_training, short_config
+from nerfstudio.data.utils import colmap_parsing_utils as colmap_utils
 from PIL import Image
+from test_bench_results import make_result
 
-from hpgs_ns.dataparser import MipNerf360DataParserConfig, SceneDataError, _make_downscaled_folder, image_problem
 from hpgs_ns.bench.report import stress_table
+from hpgs_ns.bench.results import RunResult
 from hpgs_ns.bench.stress import Corrupt, Exposure, PoseNoise, StressConfig, perturbed_copy, split_names
+from hpgs_ns.dataparser import MipNerf360DataParserConfig, SceneDataError, _make_downscaled_folder, image_problem
+from hpgs_ns.errors import UserError
 
 
 @pytest.fixture(scope="module")
@@ -176,7 +179,7 @@ def test_downscaling_a_corrupt_image_is_a_clear_error(scene, tmp_path):
 
 
 def row(scene, selector, psnr, seed=0):
-    return {"scene": scene, "protocol": "hpgs", "selector": selector, "seed": seed, "test": {"psnr": psnr}}
+    return make_result(scene, "hpgs", selector, seed, psnr)
 
 
 def test_stress_table_pairs_each_perturbed_run_with_the_same_seeds_clean_run():
@@ -185,7 +188,7 @@ def test_stress_table_pairs_each_perturbed_run_with_the_same_seeds_clean_run():
         row("ring+exposure", "random", 18.5), row("ring+exposure", "random", 19.5, seed=1),
         row("ring+pose-noise", "random", 17.0),
         row("ring", "fisher", 23.0), row("ring+exposure", "fisher", 22.75), row("ring", "all", 25.0),
-        dict(row("ring", "random", 21.0), protocol="fisherrf"),  # a group with no perturbed run: no table
+        make_result("ring", "fisherrf", "random", 0, 21.0),  # a group with no perturbed run: no table
     ]
     table = stress_table(rows).splitlines()
     assert table[0].startswith("**ring / hpgs**")
@@ -202,12 +205,11 @@ def test_bench_stress_runs_each_scene_clean_and_perturbed(scene, tmp_path, monke
     """`hpgs bench --stress` wiring, with training replaced by a stub that records which scene it was given."""
     from hpgs_ns.bench import runs as bench_module
 
-    def fake_run(bench, job, env=None, sweep=None):
+    def fake_run(bench, job, env=None, sweep=None) -> RunResult:
         parse(job.scene.path)  # the real dataparser must accept the perturbed copy
         psnr = 20.0 - 1.5 * ("+" in job.scene.name)
-        return {"scene": job.scene.name, "protocol": job.protocol.name, "selector": job.name, "seed": job.seed,
-                "test": {"psnr": psnr, "ssim": 0.5, "lpips": 0.3},
-                "wall_seconds": 1.0, "selection_seconds": 0.0, "num_views_final": 6, "psnr_per_round": [], "chosen_views": [], "command": ""}
+        return make_result(job.scene.name, job.protocol.name, job.name, job.seed, psnr, 0.5, 0.3, repeat=job.repeat,
+                           data=str(job.scene.path), num_views_final=6)
 
     monkeypatch.setattr(bench_module, "run_one", fake_run)
     monkeypatch.setattr("hpgs_ns.bench.report.make_plots", lambda rows, out: [])
@@ -218,8 +220,11 @@ def test_bench_stress_runs_each_scene_clean_and_perturbed(scene, tmp_path, monke
     ]
     assert sorted(p.name for p in (out / "_scenes").iterdir()) == ["ring+corrupt", "ring+exposure"]
     assert "| random | 20.00 | 18.50 (-1.50) | 18.50 (-1.50) | -1.50 |" in (out / "stress.md").read_text()
+    written = RunResult.from_json(out / "ring+exposure/hpgs/random/seed0.json")
+    assert (written.scene, written.test.psnr, written.num_views_final) == ("ring+exposure", 18.5, 6)
+    assert written.data == str(out.resolve() / "_scenes" / "ring+exposure")
     assert (out / "ring-hpgs-stress.png").stat().st_size > 5_000
-    with pytest.raises(SystemExit, match="not a scene folder"):
+    with pytest.raises(UserError, match="not a scene folder"):
         bench_module.Bench(scenes=[tmp_path], out=out, stress=["corrupt"]).main()
 
 
