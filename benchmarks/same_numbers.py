@@ -2,7 +2,7 @@
 
 A refactor that should not move any number is checked by running this before and after and comparing:
 
-    python benchmarks/same_numbers.py --out /tmp/before.json        # on the old commit
+    python benchmarks/same_numbers.py --out /tmp/before.json --old-spelling   # on a commit before 0.3
     python benchmarks/same_numbers.py --out /tmp/after.json --compare /tmp/before.json
 
 `--compare` exits 1 when a selector picked other views or a metric moved by more than `--tolerance`.
@@ -22,14 +22,15 @@ from pathlib import Path
 SELECTORS = ("random", "farthest", "fisher", "hpgs", "condorcet", "blend")
 
 
-def run_one(scene: Path, out: Path, selector: str, seed: int, steps: int) -> dict:
+def run_one(scene: Path, out: Path, selector: str, seed: int, steps: int, old_spelling: bool) -> dict:
     from hpgs_ns.ns_train import ns_train_command
 
     eval_json = out / f"{selector}-eval.json"
+    selection = {"select-every": steps // 3, "max-rounds": 2, "selector": selector}
+    # Up to 0.2 the selection options were the datamanager's (`--old-spelling` runs an old commit).
+    datamanager = {"num-initial-views": 6, "seed": seed, **(selection if old_spelling else {})}
     cmd = ns_train_command(
-        scene, out, "same", selector, steps,
-        datamanager={"num-initial-views": 6, "select-every": steps // 3, "max-rounds": 2, "selector": selector,
-                     "seed": seed},
+        scene, out, "same", selector, steps, datamanager=datamanager, selection=None if old_spelling else selection,
         model={"rasterizer": "cpu", "warmup-length": 20, "refine-every": 20, "num-downscales": 0,
                "sh-degree-interval": 20},
         trainer={"final-eval-json": eval_json},
@@ -68,6 +69,8 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=60)
     parser.add_argument("--tolerance", type=float, default=1e-4)
     parser.add_argument("--jobs", type=int, default=2)
+    parser.add_argument("--old-spelling", action="store_true",
+                        help="set the selection options as --pipeline.datamanager.* (hpgs-ns 0.2 and older)")
     args = parser.parse_args()
 
     from hpgs_ns.scenes.synthetic import make_scene
@@ -75,7 +78,7 @@ def main() -> None:
     work = Path(tempfile.mkdtemp(prefix="same-numbers-"))
     scene = make_scene(work / "ring", layout="ring", num_cameras=40, width=64, height=48, num_points=1500, seed=0)
     with ThreadPoolExecutor(args.jobs) as pool:
-        futures = {s: pool.submit(run_one, scene, work / "runs", s, args.seed, args.steps) for s in args.selectors}
+        futures = {s: pool.submit(run_one, scene, work / "runs", s, args.seed, args.steps, args.old_spelling) for s in args.selectors}
         results = {s: f.result() for s, f in futures.items()}
     args.out.write_text(json.dumps(results, indent=1))
     for selector, r in results.items():
