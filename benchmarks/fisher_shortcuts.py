@@ -21,7 +21,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-
 from fisher_probes import load_run  # benchmarks/ is on sys.path when this script runs
 
 SHORTCUTS = ("sh_via_color", "drop_hidden", "linearize")

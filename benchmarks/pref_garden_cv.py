@@ -33,10 +33,10 @@ import torch.nn.functional as F
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from hpgs_ns.offline_weights import cached_resnet34_weights  # noqa: E402
 from hpgs_ns.preference.evaluate import index_pairs, pair_accuracy_from_scores, raw_features_of  # noqa: E402
 from hpgs_ns.preference.model import BackboneUnavailable, PreferenceModel  # noqa: E402
 from hpgs_ns.preference.pairs import image_folds, load_image, read_usable_pairs  # noqa: E402
-from hpgs_ns.offline_weights import cached_resnet34_weights  # noqa: E402
 from hpgs_ns.preference.train import TrainPref, fit_head_and_score  # noqa: E402
 
 

@@ -355,7 +355,7 @@ class _Block:
         self.rows, self.start, self.size, self.T0 = rows, start, size, T0
 
 
-def _gather_block(plan: "_Plan", tiles: Tensor, start: int, size: int, means2d: Tensor, conics: Tensor,
+def _gather_block(plan: _Plan, tiles: Tensor, start: int, size: int, means2d: Tensor, conics: Tensor,
                   opacities: Tensor) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
     """Pair ids gid [n, B] of the slots [start, start+size) of each tile, their means2d [n, B, 2], conics
     [n, B, 3] and opacities [n, B] (0 on the padding slots of shorter tiles, which makes them skipped)."""
@@ -408,7 +408,7 @@ class _RasterizeToPixels(torch.autograd.Function):
         conics: Tensor,  # [M, 3]
         colors: Tensor,  # [M, D]
         opacities: Tensor,  # [M]
-        plan: "_Plan",
+        plan: _Plan,
         absgrad: bool,
     ) -> Tuple[Tensor, Tensor]:
         dtype, device = colors.dtype, colors.device

@@ -18,7 +18,6 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from device_scene_with_tracks import main as colmap_copy  # noqa: E402
-
 from PIL import Image  # noqa: E402
 
 from hpgs_ns.bench.suites import load_suite  # noqa: E402

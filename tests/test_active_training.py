@@ -15,7 +15,6 @@ from pathlib import Path
 
 import pytest
 import torch
-
 from conftest import run_training, short_config, stock_ns_viewer_page
 
 

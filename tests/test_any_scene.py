@@ -13,12 +13,16 @@ from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
+from conftest import require_shared, run_training, short_config, stock_ns_viewer_page
 from PIL import Image
 
-from conftest import require_shared, run_training, short_config, stock_ns_viewer_page
 from hpgs_ns.datamanager import ActiveViewError
 from hpgs_ns.dataparser import (
-    HpgsNerfstudioDataParserConfig, MipNerf360DataParserConfig, SceneDataError, read_ply_points, scene_dataparser,
+    HpgsNerfstudioDataParserConfig,
+    MipNerf360DataParserConfig,
+    SceneDataError,
+    read_ply_points,
+    scene_dataparser,
     view_name,
 )
 from hpgs_ns.selection.config import SelectionConfig

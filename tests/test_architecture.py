@@ -10,7 +10,6 @@ import ast
 from pathlib import Path
 from typing import Dict, List, Set
 
-
 PACKAGE = Path(__file__).resolve().parent.parent / "hpgs_ns"
 
 

@@ -4,7 +4,6 @@ per-view corrections are indexed by the full training pool, so only views traine
 from __future__ import annotations
 
 import torch
-
 from conftest import run_training, short_config
 
 

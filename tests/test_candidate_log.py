@@ -11,7 +11,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-
 from conftest import REPO, run_training, short_config
 
 

@@ -13,8 +13,8 @@ from test_bench_results import make_result
 
 from hpgs_ns.bench.gain_fit import early_stop_curve, fit_gain_model, round_gains, view_gains
 from hpgs_ns.bench.results import RoundPsnr
-from hpgs_ns.selection.early_stop import GainModel
 from hpgs_ns.errors import UserError
+from hpgs_ns.selection.early_stop import GainModel
 
 
 def runs(scene: str, a: float, b: float, seed: int = 0, initial_views=None) -> list:

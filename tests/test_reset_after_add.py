@@ -13,7 +13,6 @@ from pathlib import Path
 
 import pytest
 import torch
-
 from conftest import run_training, short_config
 
 ROUND, SECOND_ROUND = 50, 62

@@ -13,8 +13,8 @@ import textwrap
 from pathlib import Path
 
 import pytest
-
 from conftest import REPO, run_training, short_config
+
 from hpgs_ns.selectors import BUILTIN_SELECTORS, SelectionError, selector_config, selector_names
 
 TOY = textwrap.dedent('''

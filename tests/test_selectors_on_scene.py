@@ -14,9 +14,9 @@ from pathlib import Path
 
 import pytest
 import torch
+from conftest import short_config
 from PIL import Image, ImageFilter
 
-from conftest import short_config
 from hpgs_ns.selectors import SelectionError
 from hpgs_ns.selectors.farthest import FarthestSelectorConfig
 from hpgs_ns.selectors.fisher import FisherSelectorConfig

@@ -6,8 +6,8 @@ import shutil
 
 import numpy as np
 import pytest
-
 from conftest import short_config
+
 from hpgs_ns.datamanager import ActiveViewError
 
 

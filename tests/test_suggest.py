@@ -11,8 +11,8 @@ from pathlib import Path
 import pytest
 import torch
 import yaml
-
 from conftest import run_training, short_config
+
 from hpgs_ns.suggest import candidates as cand
 from hpgs_ns.suggest.command import Suggest, SuggestError, load_run, suggest
 
@@ -92,11 +92,12 @@ def test_a_camera_path_file_is_read_and_its_unusable_poses_dropped(run, run_conf
 
 def test_a_stock_splatfacto_run_loads_into_the_plugins_model(run_config, tmp_path):
     """The same checkpoint, described as `ns-train splatfacto` would: stock pipeline, datamanager and model."""
+    import dataclasses
+    import shutil
+
     from nerfstudio.data.datamanagers.full_images_datamanager import FullImageDatamanagerConfig
     from nerfstudio.models.splatfacto import SplatfactoModelConfig
     from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
-    import dataclasses
-    import shutil
 
     folder = tmp_path / "runs" / "x" / "splatfacto" / "run"
     shutil.copytree(run_config.parent, folder)
@@ -159,9 +160,8 @@ def test_arcs_spread_over_the_span_a_partial_capture_covers():
     import math
     import sys
 
-    from nerfstudio.cameras.cameras import Cameras
-
     from conftest import REPO
+    from nerfstudio.cameras.cameras import Cameras
 
     sys.path.insert(0, str(REPO / "benchmarks"))
     from suggest_check import arc_blocks, capture_azimuths
@@ -185,9 +185,8 @@ def test_arcs_spread_over_the_span_a_partial_capture_covers():
 def test_a_higher_pass_is_withheld_as_a_band_and_one_continuous_band_is_not():
     import sys
 
-    from nerfstudio.cameras.cameras import Cameras
-
     from conftest import REPO
+    from nerfstudio.cameras.cameras import Cameras
 
     sys.path.insert(0, str(REPO / "benchmarks"))
     from suggest_check import capture_elevations, height_band

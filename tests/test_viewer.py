@@ -14,9 +14,8 @@ from typing import Dict
 
 import numpy as np
 import pytest
-from PIL import Image
-
 from conftest import CHROMIUM, playwright_or_skip, run_training, short_config
+from PIL import Image
 
 WIDTH, HEIGHT = 1024, 680  # software GL renders every frame on the CPU: a small page keeps the test fast
 

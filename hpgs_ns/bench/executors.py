@@ -101,7 +101,7 @@ class LocalExecutor:
                 yield Done(i, fn(item, {}))
             return
         # Each slot is one GPU (runs_per_gpu slots per GPU; none on CPU); a run takes a slot for its whole duration.
-        slots: "queue.Queue[Optional[str]]" = queue.Queue()
+        slots: queue.Queue[Optional[str]] = queue.Queue()
         for k in range(workers):
             slots.put(gpus[k % len(gpus)] if gpus else None)
         threads = os.environ.get("OMP_NUM_THREADS") or str(max((os.cpu_count() or 1) // workers, 1))

@@ -41,9 +41,9 @@ from hpgs_ns.bench.report import DEFAULT_RESULTS_PAGE, write_report
 from hpgs_ns.bench.results import Metrics, Provenance, RoundPsnr, RunResult, Timing, ViewMetrics
 from hpgs_ns.bench.stress import PerturbationName, StressConfig, perturbed_copy
 from hpgs_ns.bench.suites import SYNTHETIC, Scene, load_suite, scene_from_folder
-from hpgs_ns.selection.early_stop import DEFAULT_GAIN_MODEL
 from hpgs_ns.errors import UserError
 from hpgs_ns.ns_train import SELECTION_PREFIX, ns_train_command
+from hpgs_ns.selection.early_stop import DEFAULT_GAIN_MODEL
 
 CONSOLE = Console(stderr=True)
 PREFERENCE_SELECTORS = ("hpgs", "condorcet", "blend")  # the selectors that score with a preference model

@@ -51,7 +51,7 @@ class Scene:
     def option_dict(self) -> dict:
         return dict(self.options)
 
-    def with_options(self, **options: str) -> "Scene":
+    def with_options(self, **options: str) -> Scene:
         merged = {**self.option_dict(), **{k: str(v) for k, v in options.items()}}
         return Scene(self.name, self.path, self.dataparser, tuple(sorted(merged.items())), self.smoke)
 

@@ -33,9 +33,9 @@ from typing import Dict, List, Literal, Optional
 import tyro
 from typing_extensions import Annotated
 
+from hpgs_ns.atomic_write import write_csv_atomic
 from hpgs_ns.errors import UserError
 from hpgs_ns.preference.model import CheckpointError
-from hpgs_ns.atomic_write import write_csv_atomic
 from hpgs_ns.preference.pairs import COLUMNS, SKIPPED, PairsError, pairs_reader, parse_flag
 
 PAGE = Path(__file__).resolve().parent / "static" / "label.html"

@@ -311,7 +311,7 @@ class PreferenceModel(nn.Module):
         return path
 
     @classmethod
-    def load(cls, path: Path, device: torch.device | str = "cpu") -> "PreferenceModel":
+    def load(cls, path: Path, device: torch.device | str = "cpu") -> PreferenceModel:
         """Rebuild a model saved by `save`; CheckpointError (one line) if it is not one or does not fit."""
         path = Path(path)
         if not path.is_file():

@@ -27,7 +27,13 @@ from hpgs_ns.errors import UserError
 from hpgs_ns.offline_weights import MissingWeightsError
 from hpgs_ns.preference.evaluate import evaluate_pairs, index_pairs, raw_features_of
 from hpgs_ns.preference.model import (
-    BackboneName, BackboneUnavailable, FeatureTransform, PreferenceModel, RecipeError, bt_loss, check_recipe,
+    BackboneName,
+    BackboneUnavailable,
+    FeatureTransform,
+    PreferenceModel,
+    RecipeError,
+    bt_loss,
+    check_recipe,
 )
 from hpgs_ns.preference.pairs import Pair, PairsError, image_disjoint_split, images_of, load_image, read_usable_pairs
 

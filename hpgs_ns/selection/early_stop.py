@@ -40,7 +40,7 @@ class GainModel:
                                               "fitted_on": self.fitted_on, "model": "gain = a + b * log(views)"})
 
     @classmethod
-    def load(cls, path: Optional[Path] = None) -> "GainModel":
+    def load(cls, path: Optional[Path] = None) -> GainModel:
         from hpgs_ns.errors import UserError
 
         path = Path(path) if path is not None else DEFAULT_GAIN_MODEL

@@ -54,7 +54,7 @@ class RoundRecord:
         return out
 
     @classmethod
-    def from_dict(cls, data: Dict[str, Any]) -> "RoundRecord":
+    def from_dict(cls, data: Dict[str, Any]) -> RoundRecord:
         return cls(
             round=int(data["round"]), step=int(data["step"]), selector=str(data.get("selector", "")),
             chosen=list(data["chosen"]), chosen_indices=[int(i) for i in data.get("chosen_indices", [])],

@@ -25,10 +25,10 @@ from nerfstudio.utils import writer
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from hpgs_ns.atomic_write import write_json_atomic
-from hpgs_ns.selection.early_stop import GainModel
 from hpgs_ns.errors import UserError
 from hpgs_ns.schedules import restart_schedules
 from hpgs_ns.selection.candidate_log import CandidateLog
+from hpgs_ns.selection.early_stop import GainModel
 from hpgs_ns.selection.records import RoundRecord, StopRecord
 from hpgs_ns.selection.schedule import Every, run_steps
 from hpgs_ns.selectors.base import Selection, SelectionContext, SelectionError, Selector, check_selection

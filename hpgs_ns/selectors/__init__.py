@@ -5,7 +5,12 @@ packages register through the `hpgs_ns.selectors` entry point group.
 """
 
 from hpgs_ns.selectors.base import (
-    Selection, SelectionContext, SelectionError, Selector, SelectorConfig, check_selection,
+    Selection,
+    SelectionContext,
+    SelectionError,
+    Selector,
+    SelectorConfig,
+    check_selection,
 )
 from hpgs_ns.selectors.blend import BlendSelectorConfig
 from hpgs_ns.selectors.condorcet import CondorcetSelectorConfig
