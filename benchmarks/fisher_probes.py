@@ -116,10 +116,12 @@ def main() -> None:
             secs.append(time.perf_counter() - t)
             rhos.append(spearman([s[c] for c in order], ref_list))
             tops.append(max(s, key=s.get) == best)
-        row = {"probes": k, "view_batch": vb, "resolution_scale": sc, "train_probe_factor": f, "seconds_per_round": sum(secs) / len(secs), "spearman_vs_reference": sum(rhos) / len(rhos),
+        row = {"probes": k, "view_batch": vb, "resolution_scale": sc, "train_probe_factor": f,
+               "seconds_per_round": sum(secs) / len(secs), "spearman_vs_reference": sum(rhos) / len(rhos),
                "spearman_min": min(rhos), "top_pick_agrees": sum(tops) / len(tops)}
         rows.append(row)
-        print(f"K={k:4d} view_batch={vb:4d} scale={sc:.2f} train_factor={f}  {row['seconds_per_round']:7.2f} s/round  Spearman {row['spearman_vs_reference']:.3f} "
+        print(f"K={k:4d} view_batch={vb:4d} scale={sc:.2f} train_factor={f}  {row['seconds_per_round']:7.2f} s/round  "
+              f"Spearman {row['spearman_vs_reference']:.3f} "
               f"(min {row['spearman_min']:.3f})  top pick agrees {100 * row['top_pick_agrees']:.0f}%", flush=True)
     device = torch.cuda.get_device_name(0) if torch.cuda.is_available() else f"cpu ({platform.processor() or 'x86_64'})"
     write_json_atomic(args.out, {

@@ -123,7 +123,7 @@ def main() -> None:
             continue
         raw = raw_features_of(model, images, batch_size=16)
 
-        def learned(train: torch.Tensor) -> torch.Tensor:
+        def learned(train: torch.Tensor, model=model, raw=raw) -> torch.Tensor:
             return fit_head_and_score(model, raw, index[train], labels[train], l2=args.l2)
 
         rows[f"{name} (frozen)"] = cv(learned)
@@ -136,7 +136,7 @@ def main() -> None:
         recipe = TrainPref(pairs=(), out=Path("unused"), backbone=name, pretrained=pretrained, finetune=True,
                            epochs=args.finetune_epochs, input_size=args.input_size, l2=args.l2)
 
-        def finetuned(train: torch.Tensor) -> torch.Tensor:
+        def finetuned(train: torch.Tensor, recipe=recipe) -> torch.Tensor:
             model, _, _ = recipe.fit([p for p, t in zip(pairs, train.tolist()) if t])
             with torch.no_grad():
                 return model.score_features(model.standardise(raw_features_of(model, images, progress=False)))

@@ -79,7 +79,8 @@ def capture_azimuths(cameras) -> torch.Tensor:
     """Each training camera's azimuth (degrees) around the capture's centre and up axis."""
     lay = cand.layout(cameras.camera_to_worlds)
     u = lay.up
-    a = torch.nn.functional.normalize(torch.linalg.cross(u, torch.tensor([1.0, 0, 0]) if abs(u[0]) < 0.9 else torch.tensor([0, 1.0, 0]), dim=0), dim=0)
+    side = torch.tensor([1.0, 0, 0]) if abs(u[0]) < 0.9 else torch.tensor([0, 1.0, 0])
+    a = torch.nn.functional.normalize(torch.linalg.cross(u, side, dim=0), dim=0)
     b = torch.linalg.cross(u, a, dim=0)
     rel = cameras.camera_to_worlds[:, :3, 3] - lay.centre
     return torch.rad2deg(torch.atan2(rel @ b, rel @ a)) % 360

@@ -434,7 +434,7 @@ class _RasterizeToPixels(torch.autograd.Function):
                     break  # every pixel of these tiles has stopped: the rest of their lists is never read
                 rows_b = None if bool(live.all()) else torch.nonzero(live).flatten()
 
-                def sel(x: Tensor) -> Tensor:
+                def sel(x: Tensor, rows_b: Optional[Tensor] = rows_b) -> Tensor:
                     return x if rows_b is None else x[rows_b]
 
                 size = min(DEPTH_BLOCK, int(sel(counts).max()) - start)
@@ -487,7 +487,7 @@ class _RasterizeToPixels(torch.autograd.Function):
             # accumulated back to front (suffix sums: no division chain).
             carry = T_final * vT_tiles[tiles]
             for blk in reversed(blocks):
-                def sel(x: Tensor) -> Tensor:
+                def sel(x: Tensor, blk: _Block = blk) -> Tensor:
                     return x if blk.rows is None else x[blk.rows]
 
                 gid, m, con, opac = _gather_block(plan, sel(tiles), blk.start, blk.size, means2d, conics, opacities)

@@ -186,7 +186,9 @@ class ActiveDatamanager(FullImageDatamanager):
         if self.config.initial_view_names:
             chosen = sorted(self._view_index(v, "initial") for v in self.config.initial_view_names)
             if self.excluded & set(chosen):
-                raise ActiveViewError(f"initial view {self.image_names[min(self.excluded & set(chosen))]!r} is also excluded; drop it from one list")
+                raise ActiveViewError(
+                    f"initial view {self.image_names[min(self.excluded & set(chosen))]!r} is also excluded; drop it from one list"
+                )
             return chosen
         if k < 1:
             raise ActiveViewError("--pipeline.datamanager.num-initial-views must be at least 1")
@@ -228,7 +230,9 @@ class ActiveDatamanager(FullImageDatamanager):
         model_dir = Path(parser.data) / parser.colmap_path
         images, points = read_images(model_dir), read_points3D(model_dir)
         if images is None or points is None:
-            raise ActiveViewError(f"strict-init needs {model_dir}/images and points3D (.bin or .txt); drop --pipeline.datamanager.strict-init")
+            raise ActiveViewError(
+                f"strict-init needs {model_dir}/images and points3D (.bin or .txt); drop --pipeline.datamanager.strict-init"
+            )
         name_to_id = {im.name: im_id for im_id, im in images.items()}
         # COLMAP names images by their path inside the image folder: a view name without its first folder.
         colmap_names = [Path(*Path(n).parts[1:]).as_posix() for n in self.image_names]

@@ -29,7 +29,9 @@ def tiny_scene(tmp_path_factory) -> Path:
     """A 40-camera, 64x48 synthetic `ring` scene (35 training views, 5 test views)."""
     from hpgs_ns.scenes.synthetic import make_scene
 
-    return make_scene(tmp_path_factory.mktemp("scenes") / "ring", layout="ring", num_cameras=40, width=64, height=48, num_points=1500, seed=0)
+    return make_scene(
+        tmp_path_factory.mktemp("scenes") / "ring", layout="ring", num_cameras=40, width=64, height=48, num_points=1500, seed=0
+    )
 
 
 def short_config(scene: Path, out: Path, steps: int = 60, every: int = 20, rounds: int = 2, initial: int = 6, **options):

@@ -103,7 +103,7 @@ def test_training_lowers_the_loss(trained):
     # The logged loss is not comparable across steps (resolution schedule, random backgrounds, new views), so
     # compare the full-resolution error on fixed views before and after training.
     assert trained["error_after"] < 0.85 * trained["error_before"], (trained["error_before"], trained["error_after"])
-    assert all(l == l and l < 1 for l in trained["losses"])  # finite, no blow-up
+    assert all(loss == loss and loss < 1 for loss in trained["losses"])  # finite, no blow-up
 
 
 def test_checkpoint_loads_with_weights_only_and_keeps_the_active_set(trained):

@@ -93,7 +93,9 @@ def test_old_dataparser_spelling_fails_at_parse_naming_the_subcommands(capsys):
 
 
 def test_a_capture_folder_given_to_the_default_parser_names_the_subcommand(fox):
-    with pytest.raises(SceneDataError, match=f"{fox} is a nerfstudio-data folder .*run: ns-train hpgs \\[options\\] nerfstudio-data --data {fox}"):
+    with pytest.raises(
+        SceneDataError, match=f"{fox} is a nerfstudio-data folder .*run: ns-train hpgs \\[options\\] nerfstudio-data --data {fox}"
+    ):
         MipNerf360DataParserConfig(data=fox).setup().get_dataparser_outputs("train")
     assert scene_dataparser(fox) == "nerfstudio-data"
 

@@ -19,7 +19,9 @@ from hpgs_ns.scenes.colmap_model import model_file, read_images, read_points3D, 
 def scene(tmp_path_factory) -> Path:
     from hpgs_ns.scenes.synthetic import make_scene
 
-    return make_scene(tmp_path_factory.mktemp("colmap") / "ring", layout="ring", num_cameras=16, width=32, height=24, num_points=300, seed=0)
+    return make_scene(
+        tmp_path_factory.mktemp("colmap") / "ring", layout="ring", num_cameras=16, width=32, height=24, num_points=300, seed=0
+    )
 
 
 def text_copy(scene: Path, dest: Path) -> Path:

@@ -652,7 +652,8 @@ def test_small_matmul_broadcast_path_equals_matmul():
     from hpgs_ns.cpu_raster import _mm_broadcast
 
     g = torch.Generator().manual_seed(0)
-    for sa, sb in [((5, 3, 3), (5, 3, 3)), ((2, 1, 3, 3), (4, 3, 3)), ((7, 2, 3), (7, 3, 3)), ((6, 3, 3), (6, 3, 1)), ((6, 1, 16), (6, 16, 3))]:
+    shapes = [((5, 3, 3), (5, 3, 3)), ((2, 1, 3, 3), (4, 3, 3)), ((7, 2, 3), (7, 3, 3)), ((6, 3, 3), (6, 3, 1)), ((6, 1, 16), (6, 16, 3))]
+    for sa, sb in shapes:
         a = torch.randn(*sa, generator=g, dtype=torch.float64)
         b = torch.randn(*sb, generator=g, dtype=torch.float64)
         torch.testing.assert_close(_mm_broadcast(a, b), a @ b, rtol=0, atol=1e-12)

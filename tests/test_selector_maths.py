@@ -68,7 +68,8 @@ def test_cosine_distance_to_median_feature_and_median_distance():
     assert int(torch.argmax(d)) == 2
     dm = cosine_distance_to_set(cand, train, "median-distance")
     assert dm.shape == (3,) and int(torch.argmax(dm)) == 2
-    assert float(dm[0]) == pytest.approx(float(torch.quantile(1 - torch.nn.functional.normalize(train, dim=-1)[:, 0].double(), 0.5)), abs=1e-6)
+    expected = float(torch.quantile(1 - torch.nn.functional.normalize(train, dim=-1)[:, 0].double(), 0.5))
+    assert float(dm[0]) == pytest.approx(expected, abs=1e-6)
 
 
 def test_condorcet_winner_equals_highest_bt_score():

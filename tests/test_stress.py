@@ -26,7 +26,9 @@ def scene(tmp_path_factory) -> Path:
     """A 40-camera, 64x48 `ring` scene with an `images_2/` folder (35 training, 5 test views)."""
     from hpgs_ns.scenes.synthetic import make_scene
 
-    path = make_scene(tmp_path_factory.mktemp("stress") / "ring", layout="ring", num_cameras=40, width=64, height=48, num_points=1500, seed=0)
+    path = make_scene(
+        tmp_path_factory.mktemp("stress") / "ring", layout="ring", num_cameras=40, width=64, height=48, num_points=1500, seed=0
+    )
     (path / "images_2").mkdir()
     for image in sorted((path / "images").iterdir()):
         Image.open(image).resize((32, 24)).save(path / "images_2" / image.name)

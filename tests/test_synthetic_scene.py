@@ -25,7 +25,9 @@ def ring_scene(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def occluded_scene(tmp_path_factory) -> Path:
-    return ss.make_scene(tmp_path_factory.mktemp("occ") / "scene", layout="occluded", seed=0, num_cameras=36, width=48, height=36, num_points=2500)
+    return ss.make_scene(
+        tmp_path_factory.mktemp("occ") / "scene", layout="occluded", seed=0, num_cameras=36, width=48, height=36, num_points=2500
+    )
 
 
 @pytest.fixture(scope="module")
@@ -99,7 +101,8 @@ def test_intrinsics_match_spec_and_ground_truth(ring_scene, parsed):
     truth = _truth(ring_scene)["intrinsics"]
     focal = 0.5 * 96 / math.tan(math.radians(60.0) / 2)
     cams = parsed[0].cameras
-    assert truth == {"model": "PINHOLE", "width": 96, "height": 72, "fx": pytest.approx(focal), "fy": pytest.approx(focal), "cx": 48.0, "cy": 36.0}
+    assert truth == {"model": "PINHOLE", "width": 96, "height": 72, "fx": pytest.approx(focal), "fy": pytest.approx(focal),
+                     "cx": 48.0, "cy": 36.0}
     assert cams.fx.unique().tolist() == pytest.approx([focal]) and cams.fy.unique().tolist() == pytest.approx([focal])
     assert cams.cx.unique().tolist() == [48.0] and cams.cy.unique().tolist() == [36.0]
     assert cams.width.unique().tolist() == [96] and cams.height.unique().tolist() == [72]

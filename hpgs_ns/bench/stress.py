@@ -105,7 +105,7 @@ class Exposure:
                     fmt, mode = image.format, image.mode
                     pixels = np.asarray(image.convert("RGBA" if "A" in mode else "RGB")).copy()
                 pixels[..., :3] = lut[pixels[..., :3]]  # alpha untouched
-                _replace_file(path, lambda tmp: Image.fromarray(pixels).save(tmp, format=fmt, quality=95))
+                _replace_file(path, lambda tmp, pixels=pixels, fmt=fmt: Image.fromarray(pixels).save(tmp, format=fmt, quality=95))
         return {"views": changed}
 
 
@@ -129,7 +129,7 @@ class Corrupt:
             for path in _image_copies(scene, name):
                 data = path.read_bytes()
                 cut = data[: int(len(data) * self.keep_fraction)] if kinds[name] == "truncated" else b""
-                _replace_file(path, lambda tmp: Path(tmp).write_bytes(cut))
+                _replace_file(path, lambda tmp, cut=cut: Path(tmp).write_bytes(cut))
         return {"views": kinds}
 
 

@@ -518,13 +518,15 @@ def build_scene(layout: str = "ring", seed: int = 0) -> Scene:
         x, y = jit(0.75, 0.45)
         prims.append(Sphere("red_sphere", _tex(rng, "stripes", 0, 0.3), center=(x, y, 0.45), radius=0.45))
         x, y = jit(-0.55, 0.75)
-        prims.append(Box("green_box", _tex(rng, "checker", 120, 0.23), center=(x, y, 0.35), half=(0.35, 0.35, 0.35), yaw_deg=float(rng.uniform(10, 35))))
+        prims.append(Box("green_box", _tex(rng, "checker", 120, 0.23), center=(x, y, 0.35), half=(0.35, 0.35, 0.35),
+                         yaw_deg=float(rng.uniform(10, 35))))
         x, y = jit(-0.1, -0.85)
         prims.append(Cylinder("blue_cylinder", _tex(rng, "rings", 220, 0.18), center=(x, y, 0.0), radius=0.3, z0=0.0, z1=1.1))
         x, y = jit(0.95, -0.65)
         prims.append(Sphere("yellow_sphere", _tex(rng, "noise", 52, 0.2), center=(x, y, 0.28), radius=0.28))
         # A wall on the -x side hides the magenta sphere behind it from the cameras on the +x side.
-        prims.append(Box("wall", _tex(rng, "rings", 30, 0.2, sat=0.35), role="occluder", center=(-1.35, 0.0, 0.6), half=(0.08, 0.85, 0.6), yaw_deg=float(rng.uniform(-6, 6))))
+        prims.append(Box("wall", _tex(rng, "rings", 30, 0.2, sat=0.35), role="occluder", center=(-1.35, 0.0, 0.6),
+                         half=(0.08, 0.85, 0.6), yaw_deg=float(rng.uniform(-6, 6))))
         x, y = jit(-1.85, -0.05, 0.05)
         prims.append(Sphere("magenta_sphere", _tex(rng, "checker", 300, 0.16), center=(x, y, 0.3), radius=0.3))
         hidden.append("magenta_sphere")
@@ -532,7 +534,8 @@ def build_scene(layout: str = "ring", seed: int = 0) -> Scene:
         x, y = jit(-0.55, 0.55)
         prims.append(Sphere("red_sphere", _tex(rng, "stripes", 0, 0.3), center=(x, y, 0.42), radius=0.42))
         x, y = jit(-0.75, -0.5)
-        prims.append(Box("green_box", _tex(rng, "checker", 120, 0.23), center=(x, y, 0.3), half=(0.3, 0.3, 0.3), yaw_deg=float(rng.uniform(10, 35))))
+        prims.append(Box("green_box", _tex(rng, "checker", 120, 0.23), center=(x, y, 0.3), half=(0.3, 0.3, 0.3),
+                         yaw_deg=float(rng.uniform(10, 35))))
         x, y = jit(0.1, 0.0)
         prims.append(Cylinder("blue_cylinder", _tex(rng, "rings", 220, 0.18), center=(x, y, 0.0), radius=0.25, z0=0.0, z1=0.9))
         # A pocket on the +x side, open only towards +x: its gold sphere is seen only by the cameras facing
@@ -709,7 +712,13 @@ def sample_points(
             keep = visibility(scene, cams, p, spec)[0].sum(0) >= 2
             pools[obj].append((p[keep], idx[rows][keep]))
             have[obj] += int(keep.sum())
-    cat = {obj: (np.concatenate([a for a, _ in pools[obj]] or [np.zeros((0, 3))]), np.concatenate([b for _, b in pools[obj]] or [np.zeros(0, np.int64)])) for obj in (True, False)}
+    cat = {
+        obj: (
+            np.concatenate([a for a, _ in pools[obj]] or [np.zeros((0, 3))]),
+            np.concatenate([b for _, b in pools[obj]] or [np.zeros(0, np.int64)]),
+        )
+        for obj in (True, False)
+    }
     n_obj = min(len(cat[True][0]), want[True])
     n_sur = min(len(cat[False][0]), spec.num_points - n_obj)
     n_obj = min(len(cat[True][0]), spec.num_points - n_sur)  # top up with object points if the rest ran short
@@ -770,7 +779,8 @@ def _ground_truth(
         objects.append(entry)
     limited = sorted(
         (
-            {"name": o["name"], "num_seen_by": len(o["seen_by"]), "fraction_of_cameras": round(len(o["seen_by"]) / len(cams), 4), "seen_by": o["seen_by"]}
+            {"name": o["name"], "num_seen_by": len(o["seen_by"]), "fraction_of_cameras": round(len(o["seen_by"]) / len(cams), 4),
+             "seen_by": o["seen_by"]}
             for o in objects
             if o["role"] in ("object", "occluder") and len(o["seen_by"]) < 0.5 * len(cams)
         ),
@@ -786,7 +796,8 @@ def _ground_truth(
         "up": _scene_vec([0, 0, 1]),
         "target": _scene_vec(scene.target),
         "light_direction": _scene_vec(scene.light),
-        "intrinsics": {"model": "PINHOLE", "width": spec.width, "height": spec.height, "fx": f, "fy": f, "cx": spec.width / 2, "cy": spec.height / 2},
+        "intrinsics": {"model": "PINHOLE", "width": spec.width, "height": spec.height, "fx": f, "fy": f,
+                       "cx": spec.width / 2, "cy": spec.height / 2},
         "sees_min_pixels": min_pixels,
         "num_points3D": int(points_per_prim.sum()),
         "cameras": [
@@ -806,7 +817,10 @@ def _ground_truth(
         "objects_note": "center in the COLMAP world frame; radius/half sizes in metres along the scene axes "
         "(x, y, up); yaw_deg about the up axis; cylinders span heights z0..z1 above the ground",
         "objects": objects,
-        "hidden": [{"name": n, "seen_by": objects[names.index(n)]["seen_by"], "num_points3D": objects[names.index(n)]["num_points3D"]} for n in scene.hidden],
+        "hidden": [
+            {"name": n, "seen_by": objects[names.index(n)]["seen_by"], "num_points3D": objects[names.index(n)]["num_points3D"]}
+            for n in scene.hidden
+        ],
         "limited_visibility": limited,
     }
 

@@ -136,7 +136,8 @@ class SelectionRounds:
                 CONSOLE.print(f"stop-when-gain-below {self.config.stop_when_gain_below:g} dB: the first round is predicted "
                               f"to gain {gain:.2f} dB; selection stops at the first round predicted below it")
             if why:
-                what = "no selection rounds will run" if count == 0 else f"only {count} of {self.config.max_rounds} selection rounds will run"
+                what = ("no selection rounds will run" if count == 0
+                        else f"only {count} of {self.config.max_rounds} selection rounds will run")
                 CONSOLE.print(f"[yellow]{what}: {why}", soft_wrap=True)
         if self.config.reset_after_add:
             self.model.keep_initial_for_resets()
@@ -177,7 +178,9 @@ class SelectionRounds:
             cameras=cameras,
             image_names=dm.image_names,
             model=model,
-            render=lambda idx, short_side=short: model.render_views(cameras[torch.tensor([int(i) for i in idx], dtype=torch.long)], short_side),
+            render=lambda idx, short_side=short: model.render_views(
+                cameras[torch.tensor([int(i) for i in idx], dtype=torch.long)], short_side
+            ),
             # Derived from (seed, round) so a resumed run makes the same choices as an uninterrupted one.
             generator=torch.Generator().manual_seed(self.seed * 1_000_003 + len(dm.history)),
             device=torch.device(model.device),

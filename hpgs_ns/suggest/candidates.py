@@ -68,7 +68,8 @@ def orbit(lay: Layout, rings: int = 3, per_ring: int = 36) -> torch.Tensor:
     median radius of the cameras nearest that height; every camera looks at the centre."""
     levels = torch.quantile(lay.heights, torch.linspace(0, 1, rings)) if rings > 1 else lay.heights.median()[None]
     u = lay.up
-    a = torch.nn.functional.normalize(torch.linalg.cross(u, torch.tensor([1.0, 0, 0]) if abs(u[0]) < 0.9 else torch.tensor([0, 1.0, 0]), dim=0), dim=0)
+    side = torch.tensor([1.0, 0, 0]) if abs(u[0]) < 0.9 else torch.tensor([0, 1.0, 0])
+    a = torch.nn.functional.normalize(torch.linalg.cross(u, side, dim=0), dim=0)
     b = torch.linalg.cross(u, a, dim=0)
     eyes = []
     for h in levels:
@@ -90,7 +91,8 @@ def sphere(lay: Layout, count: int = 128) -> torch.Tensor:
     dirs = torch.stack([torch.sqrt(1 - z**2) * torch.cos(phi), torch.sqrt(1 - z**2) * torch.sin(phi), z], -1).float()
     # the sphere's pole on `up`, so its rings follow the capture's ground plane
     u = lay.up
-    a = torch.nn.functional.normalize(torch.linalg.cross(u, torch.tensor([1.0, 0, 0]) if abs(u[0]) < 0.9 else torch.tensor([0, 1.0, 0]), dim=0), dim=0)
+    side = torch.tensor([1.0, 0, 0]) if abs(u[0]) < 0.9 else torch.tensor([0, 1.0, 0])
+    a = torch.nn.functional.normalize(torch.linalg.cross(u, side, dim=0), dim=0)
     basis = torch.stack([a, torch.linalg.cross(u, a, dim=0), u], 0)
     eyes = lay.centre + radius * dirs @ basis
     up = u.clone()

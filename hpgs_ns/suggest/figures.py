@@ -46,7 +46,8 @@ def top_down_map(dm, poses: torch.Tensor, pool: List[int], picked: List[int], la
     import matplotlib.pyplot as plt
 
     u = lay.up.double()
-    a = torch.nn.functional.normalize(torch.linalg.cross(u, torch.tensor([1.0, 0, 0], dtype=u.dtype) if abs(u[0]) < 0.9 else torch.tensor([0, 1.0, 0], dtype=u.dtype), dim=0), dim=0)
+    side = torch.tensor([1.0, 0, 0], dtype=u.dtype) if abs(u[0]) < 0.9 else torch.tensor([0, 1.0, 0], dtype=u.dtype)
+    a = torch.nn.functional.normalize(torch.linalg.cross(u, side, dim=0), dim=0)
     b = torch.linalg.cross(u, a, dim=0)
 
     def xy(c2w: torch.Tensor) -> np.ndarray:

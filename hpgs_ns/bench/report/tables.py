@@ -113,7 +113,8 @@ def work_table(rows: Sequence[RunResult]) -> str:
     if not groups:
         return ""
     lines = [
-        "| scene | protocol | selector | views rendered | pixels vs full size | pairs vs unculled | backward passes | forwards | selection (s) |",
+        "| scene | protocol | selector | views rendered | pixels vs full size | pairs vs unculled | backward passes "
+        "| forwards | selection (s) |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
 
