@@ -3,22 +3,26 @@
 from __future__ import annotations
 
 import csv
+import http.client
 import json
 import os
 import re
 import shutil
 import signal
+import socket
 import subprocess
 import sys
+import tempfile
 import threading
+import time
 import urllib.error
 import urllib.request
-from http.server import ThreadingHTTPServer
 from pathlib import Path
-from typing import Optional
+from typing import Optional, Tuple
 
 import numpy as np
 import pytest
+import tyro
 from conftest import CHROMIUM, playwright_or_skip
 from PIL import Image
 
@@ -75,13 +79,16 @@ def test_answers_are_on_disk_when_confirmed_and_undo_clears_them(label_dir):
 
 
 def _start_server(label_dir: Path) -> tuple:
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "hpgs_ns.cli", "label", str(label_dir), "--port", "0", "--no-open-browser"],
-        cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)}, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(_cli(label_dir, "--port", "0"), cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)},
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     line = proc.stdout.readline()
     match = re.search(r"http://127\.0\.0\.1:(\d+)/", line)
     assert match, f"no URL in {line!r}; stderr: {proc.stderr.read() if proc.poll() is not None else ''}"
     return proc, match.group(0)
+
+
+def _cli(label_dir: Path, *args: str) -> list:
+    return [sys.executable, "-m", "hpgs_ns.cli", "label", str(label_dir), "--no-open-browser", *args]
 
 
 def _post(url: str, body: dict, headers: Optional[dict] = None) -> dict:
@@ -129,8 +136,13 @@ def test_server_survives_kill_9_with_every_confirmed_label(label_dir):
     assert proc.returncode == -signal.SIGKILL
     assert _labels(label_dir / "pairs.csv")[:5] == [(1, False), (0, False), (None, True), (1, False), (None, False)]
     assert not list(label_dir.glob(".pairs.csv.*"))  # no temporary files left behind
+    # a kill -9 in the middle of a save leaves the temporary file (the CSV stays whole): the restart removes it
+    fd, tmp = tempfile.mkstemp(prefix=".pairs.csv.", suffix=".tmp", dir=label_dir)
+    os.write(fd, b"Image_1,Image_2,Human Pref")
+    os.close(fd)
     proc, url = _start_server(label_dir)  # resumes where it stopped
     try:
+        assert not Path(tmp).exists()
         with urllib.request.urlopen(url + "api/state", timeout=10) as r:
             state = json.loads(r.read())
         assert (state["pair"]["id"], state["labelled"], state["skipped"], state["remaining"]) == (4, 3, 1, 4)
@@ -207,13 +219,265 @@ def test_order_uncertain_shows_least_sure_pairs_first(label_dir):
     assert book.state()["pair"]["id"] == book.order[0]
 
 
+# --- hardening: bursts, bad input, paths outside the folder, ports ------------------------------------------
+
+@pytest.fixture
+def served(label_dir):
+    """(book, port) of an in-process server on a free port; stopped after the test."""
+    book = ls.LabelBook(label_dir / "pairs.csv")
+    server = ls.LabelServer(("127.0.0.1", 0), ls.make_handler(book))
+    threading.Thread(target=server.serve_forever, args=(0.05,), daemon=True).start()
+    yield book, server.server_address[1]
+    server.shutdown()
+    server.server_close()
+
+
+def _raw(port: int, data: bytes, end: bool = True, timeout: float = 5.0) -> Tuple[int, dict, dict]:
+    """Send `data` as is (and end the stream unless `end` is False); (status, headers, JSON body) of the reply."""
+    with socket.create_connection(("127.0.0.1", port), timeout=timeout) as s:
+        s.sendall(data)
+        if end:
+            s.shutdown(socket.SHUT_WR)
+        reply = b""
+        while b"\r\n\r\n" not in reply or len(reply.split(b"\r\n\r\n", 1)[1]) < _length(reply):
+            chunk = s.recv(65536)
+            if not chunk:
+                break
+            reply += chunk
+    head, _, body = reply.partition(b"\r\n\r\n")
+    lines = head.decode("latin-1").split("\r\n")
+    headers = dict(line.split(": ", 1) for line in lines[1:])
+    return int(lines[0].split()[1]), headers, json.loads(body)
+
+
+def _length(reply: bytes) -> int:
+    match = re.search(rb"\r\nContent-Length: (\d+)\r\n", reply.split(b"\r\n\r\n", 1)[0] + b"\r\n")
+    return int(match.group(1)) if match else 1 << 30
+
+
+def _post_raw(port: int, body: bytes, path: str = "/api/label", extra: str = "") -> bytes:
+    return (f"POST {path} HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nContent-Type: application/json\r\n"
+            f"Content-Length: {len(body)}\r\n{extra}\r\n").encode() + body
+
+
+def test_burst_of_50_label_posts_is_all_written_once(tmp_path):
+    """50 clients connect and post while the server is not yet accepting (as when it is busy): the listen
+    backlog holds them all, and every label lands in the CSV exactly once."""
+    Image.new("RGB", (8, 8)).save(tmp_path / "a.png")
+    with open(tmp_path / "pairs.csv", "w", newline="") as f:
+        csv.writer(f).writerows([["Image_1", "Image_2", "Human Preference"]] + [["a.png", "a.png", ""]] * 50)
+    book = ls.LabelBook(tmp_path / "pairs.csv")
+    server = ls.LabelServer(("127.0.0.1", 0), ls.make_handler(book))
+    port = server.server_address[1]
+    assert server.request_queue_size >= 50 and server.workers >= 8
+    sent, codes = threading.Barrier(51), [None] * 50
+
+    def client(i: int) -> None:
+        conn = http.client.HTTPConnection("127.0.0.1", port, timeout=5)
+        try:
+            conn.request("POST", "/api/label", json.dumps({"id": i, "value": str(i % 2)}),
+                         {"Content-Type": "application/json"})
+            sent.wait()
+            codes[i] = conn.getresponse().status
+        except (OSError, threading.BrokenBarrierError) as err:  # with a backlog of 5: connect timed out
+            codes[i] = repr(err)
+        finally:
+            conn.close()
+
+    threads = [threading.Thread(target=client, args=(i,)) for i in range(50)]
+    try:
+        for t in threads:
+            t.start()
+        try:
+            sent.wait(timeout=10)  # all 50 connected and sent before the first accept
+        except threading.BrokenBarrierError:
+            pass  # some could not connect: codes says which
+        start = time.monotonic()
+        threading.Thread(target=server.serve_forever, args=(0.05,), daemon=True).start()
+        for t in threads:
+            t.join(15)
+        elapsed = time.monotonic() - start
+    finally:
+        server.shutdown()
+        server.server_close()
+    assert codes == [200] * 50
+    assert elapsed < 5  # no connection waited for a SYN retransmission
+    assert _labels(tmp_path / "pairs.csv") == [(i % 2, False) for i in range(50)]
+    assert sorted(book.history) == list(range(50))  # each answer applied once
+
+
+def test_oversized_body_is_refused_unread(served, label_dir):
+    book, port = served
+    before = (label_dir / "pairs.csv").read_bytes()
+    # headers announcing 200 MB and no body: an answer before the socket timeout means nothing was read
+    start = time.monotonic()
+    request = _post_raw(port, b"").replace(b"Content-Length: 0", b"Content-Length: 200000000")
+    code, headers, body = _raw(port, request, end=False, timeout=ls.SOCKET_TIMEOUT / 2)
+    assert (code, headers["Connection"]) == (413, "close") and "65536" in body["error"]
+    assert time.monotonic() - start < ls.SOCKET_TIMEOUT / 2
+    # exactly at the limit is fine
+    pad = ls.MAX_BODY - len(json.dumps({"id": 0, "value": "1", "pad": ""}))
+    payload = json.dumps({"id": 0, "value": "1", "pad": "x" * pad}).encode()
+    assert len(payload) == ls.MAX_BODY
+    assert _raw(port, _post_raw(port, payload))[0] == 200
+    # one byte over: refused on the headers alone (a client that sent the body too may see a reset instead)
+    assert _raw(port, _post_raw(port, payload + b" ")[:-len(payload) - 1], end=False)[0] == 413
+    assert _labels(label_dir / "pairs.csv")[0] == (1, False) and before != (label_dir / "pairs.csv").read_bytes()
+
+
+DEEP = b"[" * 30_000 + b"]" * 30_000  # under the body limit, far over json's recursion limit
+BAD_REQUESTS = [  # (request bytes, with {port}; expected status)
+    (b'{"id": Infinity, "value": "1"}', 400),
+    (b'{"id": NaN, "value": "1"}', 400),
+    (b'{"id": 1e999, "value": "1"}', 400),
+    (b'{"id": ' + DEEP + b', "value": "1"}', 400),
+    (b'{"id": ' + b"[" * 100_000 + b"]" * 100_000 + b"}", 413),
+    (b"[0, 1]", 400),
+    (b"{not json", 400),
+    (b'{"id": "\xff\xfe", "value": "1"}', 400),
+    (b'{"id": ' + b"9" * 5000 + b', "value": "1"}', 400),
+    (b'{"id": 0}', 400),
+    ("GET /img/\u00b2/1 HTTP/1.0\r\nHost: 127.0.0.1:{port}\r\n\r\n".encode("latin-1"), 404),
+    ("GET /img/\u00b2/1 HTTP/1.0\r\nHost: 127.0.0.1:{port}\r\n\r\n".encode("utf-8"), 404),
+    (b"GET /img/99999999999999999999/1 HTTP/1.0\r\nHost: 127.0.0.1:{port}\r\n\r\n", 404),
+    (b"GET /img/0/3 HTTP/1.0\r\nHost: 127.0.0.1:{port}\r\n\r\n", 404),
+    (b"POST /api/label HTTP/1.0\r\nHost: 127.0.0.1:{port}\r\nContent-Length: -5\r\n\r\n", 400),
+    (b"POST /api/label HTTP/1.0\r\nHost: 127.0.0.1:{port}\r\nContent-Length: 12\r\n\r\n{}", 400),
+    (b"POST /api/label HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nTransfer-Encoding: chunked\r\n\r\n0\r\n\r\n", 411),
+    (b"PUT /api/label HTTP/1.0\r\nHost: 127.0.0.1:{port}\r\n\r\n", 501),
+    (b"HELLO\r\n\r\n", 400),
+    (b"GET /" + b"a" * 70_000 + b" HTTP/1.0\r\n\r\n", 414),
+]
+
+
+def test_bad_requests_get_json_errors_and_no_traceback(served, label_dir, capfd):
+    book, port = served
+    before = (label_dir / "pairs.csv").read_bytes()
+    for request, expected in BAD_REQUESTS:
+        if not request[:5].isupper():  # a JSON body for /api/label
+            request = _post_raw(port, request)
+        if expected == 413:  # headers only: the refused body would meet a closed socket
+            request = request[:request.index(b"\r\n\r\n") + 4]
+        code, headers, body = _raw(port, request.replace(b"{port}", str(port).encode()), end=expected != 413)
+        assert (code, headers["Content-Type"], set(body)) == (expected, "application/json", {"error"}), request[:60]
+    assert (label_dir / "pairs.csv").read_bytes() == before
+    # the server still serves, and printed nothing
+    assert _raw(port, f"GET /api/state HTTP/1.0\r\nHost: 127.0.0.1:{port}\r\n\r\n".encode())[2]["labelled"] == 0
+    out, err = capfd.readouterr()
+    assert (out, err) == ("", "")
+
+
+def test_server_faults_are_json_500s_and_one_line(served, monkeypatch, capfd):
+    book, port = served
+    monkeypatch.delenv("HPGS_TRACEBACK", raising=False)
+
+    def full_disk():
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(book, "save", full_disk)
+    code, _, body = _raw(port, _post_raw(port, b'{"id": 0, "value": "1"}'))
+    assert code == 500 and body["error"].startswith("could not save") and "No space left" in body["error"]
+    monkeypatch.setattr(book, "state", lambda: 1 / 0)
+    code, _, body = _raw(port, f"GET /api/state HTTP/1.0\r\nHost: 127.0.0.1:{port}\r\n\r\n".encode())
+    assert (code, body) == (500, {"error": "internal error: ZeroDivisionError: division by zero"})
+    err = capfd.readouterr().err
+    assert err == "hpgs label: GET '/api/state' failed: ZeroDivisionError: division by zero\n"
+
+
+def test_ids_must_be_integers_in_range(served, label_dir):
+    book, port = served
+    before = (label_dir / "pairs.csv").read_bytes()
+    for pair_id in (2.7, 2.0, True, False, "2", -1, 8, None, [2], {"id": 2}):
+        code, _, body = _raw(port, _post_raw(port, json.dumps({"id": pair_id, "value": "1"}).encode()))
+        assert code == 400 and "id must be an integer 0..7" in body["error"], pair_id
+    for value in (True, 2, "2", "yes", None, 1.0):
+        code, _, body = _raw(port, _post_raw(port, json.dumps({"id": 2, "value": value}).encode()))
+        assert code == 400 and "value must be" in body["error"], value
+    assert (label_dir / "pairs.csv").read_bytes() == before and book.history == []
+    code, _, state = _raw(port, _post_raw(port, b'{"id": 2, "value": 0}'))  # an integer value is fine
+    assert (code, state["labelled"]) == (200, 1)
+    assert _labels(label_dir / "pairs.csv")[:4] == [(None, False), (None, False), (0, False), (None, False)]
+
+
+def test_images_are_served_only_from_inside_the_folder(tmp_path):
+    collect = tmp_path / "collect"
+    (collect / "sub").mkdir(parents=True)
+    Image.new("RGB", (8, 8), (200, 0, 0)).save(collect / "sub" / "ok.png")
+    secret = tmp_path / "secret.png"
+    secret.write_bytes(b"not for the browser")
+    (collect / "link.png").symlink_to(secret)
+    names = ["../secret.png", "../../../../../../../" + str(secret), str(secret), "link.png",
+             "sub/../sub/ok.png", "missing.png", "sub"]
+    with open(collect / "pairs.csv", "w", newline="") as f:
+        csv.writer(f).writerows([["Image_1", "Image_2", "Human Preference"]] + [[n, "sub/ok.png", ""] for n in names])
+    book = ls.LabelBook(collect / "pairs.csv")
+    assert [book.served_image(i, 1)[0] for i in range(len(names))] == [403, 403, 403, 403, 200, 404, 404]
+    server = ls.LabelServer(("127.0.0.1", 0), ls.make_handler(book))
+    threading.Thread(target=server.serve_forever, args=(0.05,), daemon=True).start()
+    url = f"http://127.0.0.1:{server.server_address[1]}/"
+    try:
+        codes = []
+        for i in range(len(names)):
+            try:
+                with urllib.request.urlopen(f"{url}img/{i}/1", timeout=10) as r:
+                    codes.append(r.status)
+                    assert r.read() == (collect / "sub" / "ok.png").read_bytes()
+            except urllib.error.HTTPError as err:
+                codes.append(err.code)
+                reply = err.read()
+                assert b"not for the browser" not in reply and "error" in json.loads(reply)
+        assert codes == [403, 403, 403, 403, 200, 404, 404]
+    finally:
+        server.shutdown()
+        server.server_close()
+
+
+def test_stale_temp_files_are_removed_at_start_and_nothing_else(label_dir):
+    stale = []
+    for _ in range(2):  # atomic_write's own naming
+        fd, tmp = tempfile.mkstemp(prefix=".pairs.csv.", suffix=".tmp", dir=label_dir)
+        os.close(fd)
+        stale.append(Path(tmp))
+    keep = [".pairs.csv.notes.tmp", ".renders.csv.abcd1234.tmp", "pairs.csv.abcd1234.tmp",
+            ".pairs.csv.abcd1234.tmp.bak"]
+    for name in keep:
+        (label_dir / name).write_text("keep")
+    book = ls.LabelBook(label_dir / "pairs.csv")
+    assert sorted(book.removed_temp_files) == sorted(stale)
+    assert not any(p.exists() for p in stale) and all((label_dir / n).read_text() == "keep" for n in keep)
+    assert ls.LabelBook(label_dir / "pairs.csv").removed_temp_files == []
+
+
+def test_port_errors_are_one_line(label_dir):
+    # the command line (started first: it imports torch meanwhile): exit 1, one line on stderr, no traceback
+    env = {k: v for k, v in os.environ.items() if k != "HPGS_TRACEBACK"}
+    proc = subprocess.Popen(_cli(label_dir, "--port", "99999"), cwd=REPO, env={**env, "PYTHONPATH": str(REPO)},
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    for port in (99999, 65536, -1):
+        with pytest.raises(UserError, match=rf"^hpgs label: --port {port} is out of range 0-65535"):
+            ls.Label(label_dir, port=port)
+    with pytest.raises(UserError, match=r"--port 99999 is out of range 0-65535"):  # tyro runs __post_init__
+        tyro.cli(ls.Label, args=[str(label_dir), "--port", "99999"])
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        in_use = rf"^hpgs label: port {port} is in use; pick another with --port"
+        with pytest.raises(UserError, match=in_use) as info:
+            ls.Label(label_dir, port=port, open_browser=False).main()
+        assert "\n" not in str(info.value)
+    out, err = proc.communicate(timeout=60)
+    assert (proc.returncode, out) == (1, "")
+    assert err == "error: hpgs label: --port 99999 is out of range 0-65535 (0 picks a free one)\n"
+
+
 # --- the page in a real headless Chromium ------------------------------------------------------------------
 
 def test_label_page_in_headless_chromium(label_dir):
     sync_playwright = playwright_or_skip()
     book = ls.LabelBook(label_dir / "pairs.csv")
-    server = ThreadingHTTPServer(("127.0.0.1", 0), ls.make_handler(book))
-    threading.Thread(target=server.serve_forever, daemon=True).start()
+    server = ls.LabelServer(("127.0.0.1", 0), ls.make_handler(book))
+    threading.Thread(target=server.serve_forever, args=(0.05,), daemon=True).start()
     url = f"http://127.0.0.1:{server.server_address[1]}/"
     args = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
             "--disable-component-update", "--disable-sync", "--no-first-run"]

@@ -15,31 +15,58 @@ probability `--noise` (seeded): simulated labellers for experiments.
 Only this page may use the server: a request whose `Host` is not 127.0.0.1/localhost at the server's port (DNS
 rebinding), or a POST whose `Origin` is another site (any page open in the same browser could otherwise post
 labels), is refused with 403 and changes nothing.
+
+Hardening: a listen backlog and a fixed pool of worker threads absorb bursts of requests; request bodies over
+64 KiB are refused (413) unread; every refusal or failure is answered as JSON `{"error": ...}` (no traceback
+on the terminal for bad input); ids must be JSON integers in range; images are served only from inside DIR,
+whatever the CSV names; temporary files left by a killed session are removed when the next one starts.
 """
 
 from __future__ import annotations
 
 import csv
+import errno
 import json
 import mimetypes
+import os
+import queue
 import random
+import re
+import sys
 import threading
+import traceback
 import webbrowser
 from dataclasses import dataclass
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from http.server import BaseHTTPRequestHandler, HTTPServer
 from pathlib import Path
-from typing import Dict, List, Literal, Optional
+from typing import Dict, List, Literal, Optional, Tuple
+from urllib.parse import urlsplit
 
 import tyro
 from typing_extensions import Annotated
 
 from hpgs_ns.atomic_write import write_csv_atomic
 from hpgs_ns.errors import UserError
-from hpgs_ns.preference.model import CheckpointError
 from hpgs_ns.preference.pairs import COLUMNS, SKIPPED, PairsError, pairs_reader, parse_flag
+from hpgs_ns.preference.recipe import CheckpointError  # not .model: `hpgs label --help` needs no torch
 
 PAGE = Path(__file__).resolve().parent / "static" / "label.html"
 LABEL, IMAGE_1, IMAGE_2 = COLUMNS[2], COLUMNS[0], COLUMNS[1]
+MAX_BODY = 64 * 1024  # a label POST is ~30 bytes; anything near this is not the page
+LISTEN_BACKLOG = 128  # connections the kernel queues while the workers are busy (socketserver's default: 5)
+WORKERS = 32  # handler threads; saves are serialised by the book's lock anyway
+SOCKET_TIMEOUT = 10.0  # seconds a client may stall mid-request before its worker is freed
+
+
+def stale_temp_files(csv_path: Path) -> List[Path]:
+    """Temporary files of atomic_write's pattern (`.NAME.XXXXXXXX.tmp`, mkstemp's 8 random characters) beside
+    `csv_path`: a session killed mid-save leaves one; nothing else matches."""
+    pattern = re.compile(rf"\.{re.escape(csv_path.name)}\.[a-z0-9_]{{8}}\.tmp")
+    try:
+        names = os.listdir(csv_path.parent)
+    except OSError:
+        return []
+    return sorted(csv_path.parent / n for n in names if pattern.fullmatch(n) and (csv_path.parent / n).is_file())
 
 
 class LabelBook:
@@ -65,12 +92,30 @@ class LabelBook:
         self.order = list(range(len(self.rows)))
         self.history: List[int] = []
         self.lock = threading.Lock()
+        # leftovers of a session killed mid-save (the CSV itself is whole: the rename is atomic)
+        self.removed_temp_files = stale_temp_files(self.path)
+        for tmp in self.removed_temp_files:
+            tmp.unlink(missing_ok=True)
 
     def is_open(self, i: int) -> bool:
         return self.rows[i][LABEL] == "" and self.rows[i][SKIPPED] != "1"
 
     def image_path(self, i: int, side: int) -> Path:
         return self.path.parent / self.rows[i][IMAGE_1 if side == 1 else IMAGE_2]
+
+    def served_image(self, i: int, side: int) -> Tuple[int, Optional[Path]]:
+        """(200, path) for an image the server may send, else (403 or 404, None): only regular files inside the
+        CSV's folder once symlinks and `..` are resolved, so a CSV naming ../../etc/passwd exposes nothing."""
+        if not 0 <= i < len(self.rows):
+            return 404, None
+        root = self.path.parent.resolve()
+        try:
+            path = (root / self.rows[i][IMAGE_1 if side == 1 else IMAGE_2]).resolve()
+        except (OSError, RuntimeError, ValueError):  # symlink loop, NUL byte
+            return 404, None
+        if not path.is_relative_to(root):
+            return 403, None
+        return (200, path) if path.is_file() else (404, None)
 
     def state(self) -> dict:
         """Counts and the next open pair (None when all are answered)."""
@@ -172,10 +217,30 @@ def order_by_uncertainty(book: LabelBook, model_path: Path, device: str = "cpu")
     book.order = sorted(open_rows, key=sureness.get) + [i for i in book.order if not book.is_open(i)]
 
 
+class _Refused(Exception):
+    """A request answered with `code` and {"error": message}."""
+
+    def __init__(self, code: int, message: str):
+        super().__init__(message)
+        self.code = code
+
+
+def _no_constant(name: str):
+    raise ValueError(f"{name} is not JSON")  # json.loads accepts NaN/Infinity by default
+
+
+def _show(value, limit: int = 40) -> str:
+    text = repr(value)
+    return text if len(text) <= limit else text[:limit] + "..."
+
+
 def make_handler(book: LabelBook):
     """A request handler class bound to `book`."""
 
     class Handler(BaseHTTPRequestHandler):
+        timeout = SOCKET_TIMEOUT  # a stalled client frees its worker
+        default_request_version = "HTTP/1.0"  # errors for garbled request lines keep a status line and headers
+
         def log_message(self, fmt, *args):  # keep the terminal quiet
             pass
 
@@ -184,11 +249,20 @@ def make_handler(book: LabelBook):
             self.send_header("Content-Type", ctype)
             self.send_header("Content-Length", str(len(body)))
             self.send_header("Cache-Control", "no-store")
+            if self.close_connection:
+                self.send_header("Connection", "close")
             self.end_headers()
-            self.wfile.write(body)
+            if self.command != "HEAD":
+                self.wfile.write(body)
 
         def _json(self, obj: dict, code: int = 200) -> None:
             self._send(code, json.dumps(obj).encode(), "application/json")
+
+        def send_error(self, code, message=None, explain=None):
+            """http.server's own refusals (bad request line, headers too long, unknown method) as JSON too."""
+            self.close_connection = True
+            text = message or explain or self.responses.get(code, ("", "error"))[1]
+            self._json({"error": text}, code)
 
         def _foreign(self, post: bool) -> Optional[str]:
             """Why a request may not come from this page (refused), or None."""
@@ -203,44 +277,166 @@ def make_handler(book: LabelBook):
                 return f"cross-site request from {origin} refused"
             return None
 
+        def _guarded(self, handle) -> None:
+            """Run `handle`; whatever goes wrong, the client gets a JSON error, not a dropped connection."""
+            try:
+                handle()
+            except _Refused as err:
+                self._json({"error": str(err)}, err.code)
+            except RecursionError:
+                self._json({"error": "JSON nested too deeply"}, 400)
+            except TimeoutError:
+                self.close_connection = True
+                self._json({"error": f"request not complete within {SOCKET_TIMEOUT:g} s"}, 408)
+            except ConnectionError:  # the client hung up: nobody to answer
+                self.close_connection = True
+            except Exception as err:  # a bug or a broken disk, not the client: one line on the terminal
+                print(f"hpgs label: {self.command} {_show(self.path, 80)} failed: {type(err).__name__}: {err}",
+                      file=sys.stderr, flush=True)
+                if os.environ.get("HPGS_TRACEBACK"):
+                    traceback.print_exc()
+                self.close_connection = True
+                self._json({"error": f"internal error: {type(err).__name__}: {err}"}, 500)
+
         def do_GET(self):
-            if (why := self._foreign(post=False)) is not None:
-                return self._json({"error": why}, 403)
-            if self.path in ("/", "/index.html"):
-                return self._send(200, PAGE.read_bytes(), "text/html; charset=utf-8")
-            if self.path == "/api/state":
-                with book.lock:
-                    return self._json(book.state())
-            parts = self.path.strip("/").split("/")
-            if len(parts) == 3 and parts[0] == "img" and parts[1].isdigit() and parts[2] in ("1", "2"):
-                i = int(parts[1])
-                if i < len(book.rows):
-                    path = book.image_path(i, int(parts[2]))  # only images the CSV names are served
-                    if path.is_file():
-                        ctype = mimetypes.guess_type(path.name)[0] or "application/octet-stream"
-                        return self._send(200, path.read_bytes(), ctype)
-            self._json({"error": f"not found: {self.path}"}, 404)
+            self._guarded(self._get)
 
         def do_POST(self):
-            if (why := self._foreign(post=True)) is not None:
-                return self._json({"error": why}, 403)
+            self._guarded(self._post)
+
+        def _get(self) -> None:
+            if (why := self._foreign(post=False)) is not None:
+                raise _Refused(403, why)
+            path = urlsplit(self.path).path
+            if path in ("/", "/index.html"):
+                return self._send(200, PAGE.read_bytes(), "text/html; charset=utf-8")
+            if path == "/api/state":
+                with book.lock:
+                    state = book.state()
+                return self._json(state)
+            # ASCII digits only: str.isdigit() accepts "²", which int() refuses
+            match = re.fullmatch(r"/img/([0-9]{1,9})/([12])", path)
+            if match:
+                code, image = book.served_image(int(match.group(1)), int(match.group(2)))
+                if image is not None:
+                    ctype = mimetypes.guess_type(image.name)[0] or "application/octet-stream"
+                    return self._send(200, image.read_bytes(), ctype)
+                if code == 403:
+                    raise _Refused(403, f"{path}: the CSV names a file outside {book.path.parent}; not served")
+            raise _Refused(404, f"not found: {_show(path, 80)}")
+
+        def _body(self) -> dict:
+            """The request's JSON object; refused (unread) when over MAX_BODY."""
+            if self.headers.get("Transfer-Encoding"):
+                self.close_connection = True
+                raise _Refused(411, "send a Content-Length, not a chunked body")
+            length = (self.headers.get("Content-Length") or "0").strip()
+            if not length.isascii() or not length.isdigit():
+                self.close_connection = True
+                raise _Refused(400, f"bad Content-Length {_show(length)}")
+            if int(length) > MAX_BODY:
+                self.close_connection = True  # the body stays unread: this connection cannot carry another request
+                raise _Refused(413, f"request body of {int(length)} bytes; the limit is {MAX_BODY}")
+            raw = self.rfile.read(int(length))
+            if len(raw) < int(length):
+                self.close_connection = True
+                raise _Refused(400, f"body ended after {len(raw)} of {int(length)} bytes")
             try:
-                length = int(self.headers.get("Content-Length") or 0)
-                body = json.loads(self.rfile.read(length) or b"{}")
-                if self.path == "/api/label":
-                    book.answer(int(body["id"]), str(body["value"]))
-                elif self.path == "/api/undo":
-                    book.undo()
+                body = json.loads(raw or b"{}", parse_constant=_no_constant)
+            except ValueError as err:  # includes bad UTF-8
+                raise _Refused(400, f"body is not JSON: {err}") from None
+            if not isinstance(body, dict):
+                raise _Refused(400, f"body must be a JSON object, not {type(body).__name__}")
+            return body
+
+        def _post(self) -> None:
+            if (why := self._foreign(post=True)) is not None:
+                raise _Refused(403, why)
+            path = urlsplit(self.path).path
+            if path not in ("/api/label", "/api/undo"):
+                raise _Refused(404, f"not found: {_show(path, 80)}")
+            body = self._body()
+            try:
+                if path == "/api/label":
+                    i, value = body.get("id"), body.get("value")
+                    # bool is an int and 2.7 would truncate: only a JSON integer names a pair
+                    if type(i) is not int or not 0 <= i < len(book.rows):
+                        raise _Refused(400, f"id must be an integer 0..{len(book.rows) - 1}, got {_show(i)}")
+                    if type(value) is int:
+                        value = str(value)
+                    if value not in ("1", "0", "skip"):
+                        raise _Refused(400, f"value must be \"1\", \"0\" or \"skip\", got {_show(value)}")
+                    book.answer(i, value)
                 else:
-                    return self._json({"error": f"not found: {self.path}"}, 404)
-            except (ValueError, KeyError, TypeError) as err:
-                return self._json({"error": str(err)}, 400)
+                    book.undo()
             except OSError as err:  # the save failed: the answer is not confirmed
-                return self._json({"error": f"could not save {book.path}: {err}"}, 500)
+                raise _Refused(500, f"could not save {book.path}: {err}") from None
             with book.lock:
-                self._json(book.state())
+                state = book.state()
+            self._json(state)
 
     return Handler
+
+
+class LabelServer(HTTPServer):
+    """HTTPServer with a deep listen backlog and a fixed pool of daemon worker threads: a burst of requests
+    queues instead of being reset, and a flood cannot start unbounded threads."""
+
+    request_queue_size = LISTEN_BACKLOG
+    allow_reuse_port = False  # a second server on a busy port must fail, not share it
+
+    def __init__(self, address, handler, workers: int = WORKERS):
+        self.workers = workers
+        self._requests: queue.SimpleQueue = queue.SimpleQueue()
+        super().__init__(address, handler)  # binds; an OSError here leaves no thread behind
+        for k in range(workers):
+            threading.Thread(target=self._work, name=f"hpgs-label-{k}", daemon=True).start()
+
+    def process_request(self, request, client_address):
+        self._requests.put((request, client_address))
+
+    def _work(self) -> None:
+        while (item := self._requests.get()) is not None:
+            request, client_address = item
+            try:
+                self.finish_request(request, client_address)
+            except Exception:
+                self.handle_error(request, client_address)
+            finally:
+                self.shutdown_request(request)
+
+    def handle_error(self, request, client_address):
+        """A client that hung up or stalled is no news; anything else is one line (HPGS_TRACEBACK=1: the
+        traceback), never socketserver's traceback per request."""
+        err = sys.exc_info()[1]
+        if isinstance(err, (ConnectionError, TimeoutError)):
+            return
+        if os.environ.get("HPGS_TRACEBACK"):
+            traceback.print_exc()
+        else:
+            print(f"hpgs label: request from {client_address[0]} failed: {type(err).__name__}: {err}",
+                  file=sys.stderr, flush=True)
+
+    def server_close(self):
+        super().server_close()
+        for _ in range(self.workers):
+            self._requests.put(None)
+
+
+def open_server(port: int, book: LabelBook) -> LabelServer:
+    """The server on 127.0.0.1:port; UserError (one line naming the port and the fix) if it cannot listen."""
+    try:
+        return LabelServer(("127.0.0.1", port), make_handler(book))
+    except OverflowError:
+        raise UserError(f"hpgs label: --port {port} is out of range 0-65535") from None
+    except OSError as err:
+        if err.errno == errno.EADDRINUSE:
+            raise UserError(f"hpgs label: port {port} is in use; pick another with --port "
+                            f"(0 picks a free one)") from None
+        if err.errno == errno.EACCES:
+            raise UserError(f"hpgs label: port {port} needs privileges; pick one above 1023 with --port") from None
+        raise UserError(f"hpgs label: cannot listen on 127.0.0.1:{port} ({err.strerror}); "
+                        f"pick another with --port") from None
 
 
 @dataclass
@@ -266,6 +462,11 @@ class Label:
     open_browser: bool = True
     """Open the page in the default browser."""
 
+    def __post_init__(self) -> None:
+        # tyro runs this while parsing, so a bad --port is one line before anything loads
+        if not 0 <= self.port <= 65535:
+            raise UserError(f"hpgs label: --port {self.port} is out of range 0-65535 (0 picks a free one)")
+
     def main(self) -> None:
         try:
             book = LabelBook(self.dir / self.pairs_csv)
@@ -281,10 +482,13 @@ class Label:
                 order_by_uncertainty(book, self.model)
         except (PairsError, CheckpointError) as err:
             raise UserError(f"hpgs label: {err}") from None
-        server = ThreadingHTTPServer(("127.0.0.1", self.port), make_handler(book))
+        server = open_server(self.port, book)
         url = f"http://127.0.0.1:{server.server_address[1]}/"
         state = book.state()
-        print(f"hpgs label: {state['remaining']} of {state['total']} pairs to go; open {url} (Ctrl-C stops)", flush=True)
+        removed = len(book.removed_temp_files)
+        note = f" (removed {removed} temporary file(s) left by a killed session)" if removed else ""
+        print(f"hpgs label: {state['remaining']} of {state['total']} pairs to go; open {url} (Ctrl-C stops){note}",
+              flush=True)
         if self.open_browser:
             webbrowser.open(url)
         try:
