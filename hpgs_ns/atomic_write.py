@@ -10,9 +10,10 @@ import contextlib
 import csv
 import json
 import os
+import shutil
 import tempfile
 from pathlib import Path
-from typing import Any, Dict, Iterator, Sequence
+from typing import Any, Dict, Iterator, Optional, Sequence
 
 
 @contextlib.contextmanager
@@ -58,6 +59,33 @@ def write_csv_atomic(path: Path, fieldnames: Sequence[str], rows: Sequence[Dict[
         os.fsync(f.fileno())
     _fsync_dir(path.parent)
     return path
+
+
+@contextlib.contextmanager
+def removed_on_failure(folder: Path, expected: Dict[str, str], stop_at: Optional[Path] = None) -> Iterator[bool]:
+    """Remove `folder` if the block raises, provided it held exactly the files `expected` ({name: text}) when the
+    block began: what the caller's own process wrote there just before (a run folder holding ns-train's config.yml
+    and nothing else). A folder holding anything else is left alone. Its parents below `stop_at` that are left
+    empty go too. Yields whether `folder` is removed on failure."""
+    folder = Path(folder)
+    try:
+        fresh = folder.is_dir() and sorted(p.name for p in folder.iterdir()) == sorted(expected) and all(
+            (folder / name).read_text(encoding="utf-8") == text for name, text in expected.items())
+    except (OSError, UnicodeDecodeError):
+        fresh = False
+    try:
+        yield fresh
+    except BaseException:
+        if fresh:
+            shutil.rmtree(folder, ignore_errors=True)
+            parent, stop = folder.resolve().parent, Path(stop_at).resolve() if stop_at is not None else None
+            while stop is not None and stop in parent.parents:
+                try:
+                    parent.rmdir()  # only if empty
+                except OSError:
+                    break
+                parent = parent.parent
+        raise
 
 
 def _fsync_dir(directory: Path) -> None:

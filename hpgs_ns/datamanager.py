@@ -26,8 +26,8 @@ import torch
 from nerfstudio.data.datamanagers.full_images_datamanager import FullImageDatamanager, FullImageDatamanagerConfig
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from hpgs_ns.dataparser import DataParserUnion, MipNerf360DataParserConfig, SceneDataError, view_name
-from hpgs_ns.errors import UserError
+from hpgs_ns.dataparser import DataParserUnion, MipNerf360DataParserConfig, SceneDataError, check_image_sizes, view_name
+from hpgs_ns.errors import UserError, check_option
 from hpgs_ns.selection.records import RoundRecord
 from hpgs_ns.selectors import (
     BlendSelectorConfig,
@@ -109,6 +109,23 @@ class ActiveDatamanagerConfig(FullImageDatamanagerConfig):
     blend: BlendSelectorConfig = field(default_factory=BlendSelectorConfig)
     """Deprecated: --pipeline.selection.blend.*"""
 
+    def __post_init__(self) -> None:
+        # tyro builds this config while it parses the command line: a value that makes no sense is a one-line error
+        # before nerfstudio prints the config or makes a run folder. (A config.yml is read without __init__.) The
+        # deprecated selection options are checked where the pipeline moves them (`take_datamanager_options`).
+        parent = getattr(super(), "__post_init__", None)
+        if parent is not None:
+            parent()
+        flag = "--pipeline.datamanager."
+        check_option(flag + "num-initial-views", self.num_initial_views,
+                     self.num_initial_views >= 1 or bool(self.initial_view_names), "must be at least 1",
+                     "pass 1 or more (or name the views: --pipeline.datamanager.initial-view-names)")
+        check_option(flag + "camera-res-scale-factor", self.camera_res_scale_factor, self.camera_res_scale_factor > 0,
+                     "must be > 0", "pass e.g. 0.5 for half resolution, or 1")
+        check_option(flag + "max-thread-workers", self.max_thread_workers,
+                     self.max_thread_workers is None or self.max_thread_workers >= 1, "must be at least 1",
+                     "pass 1 or more, or leave it out (all the CPU's threads)")
+
     def __setstate__(self, state: dict) -> None:
         # A config.yml saved before an option group existed (PyYAML restores attributes, not __init__) gets that
         # group's defaults; plain-valued options already fall back to their class defaults.
@@ -141,6 +158,8 @@ class ActiveDatamanager(FullImageDatamanager):
                 f"{err}: the images were downscaled with another rounding than the cameras; pass the dataparser's "
                 "--downscale-rounding-mode (floor, round or ceil) that made them, or delete the images_N folder"
             ) from None
+        if test_mode != "inference":  # nerfstudio loads the photos lazily, and asserts their size mid-run
+            check_image_sizes([self.train_dataset, self.eval_dataset], self.config.dataparser)
         root = Path(self.config.dataparser.data)
         self.image_names: List[str] = [view_name(p, root) for p in self.train_dataset.image_filenames]
         overlap = set(self.test_view_names) & set(self.image_names)

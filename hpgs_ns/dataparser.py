@@ -43,7 +43,7 @@ from nerfstudio.data.dataparsers.nerfstudio_dataparser import Nerfstudio, Nerfst
 from nerfstudio.utils.rich_utils import CONSOLE
 from PIL import Image
 
-from hpgs_ns.errors import UserError
+from hpgs_ns.errors import UserError, check_option
 from hpgs_ns.scenes.colmap_model import model_file
 
 MAX_AUTO_RESOLUTION = 1600  # nerfstudio's rule for the automatic downscale factor
@@ -67,6 +67,24 @@ class MipNerf360DataParserConfig(ColmapDataParserConfig):
     max_unreadable_fraction: float = 0.1
     """Drop unreadable (truncated, empty) image files with a warning while at most this fraction of the images
     are; more is an error."""
+
+    def __post_init__(self) -> None:
+        check_parser_values(self, "mipnerf360")
+        check_option("mipnerf360 --max-unreadable-fraction", self.max_unreadable_fraction,
+                     0 <= self.max_unreadable_fraction <= 1, "must be within [0, 1]", "pass e.g. 0.1 (the default)")
+
+
+def check_parser_values(config, subcommand: str) -> None:
+    """The dataparser options whose values make no sense, as a one-line `OptionError` while tyro parses them."""
+    check_option(f"{subcommand} --downscale-factor", config.downscale_factor,
+                 config.downscale_factor is None or config.downscale_factor >= 1, "must be at least 1",
+                 "pass 1, 2, 4, ... or leave it out (automatic)")
+    check_option(f"{subcommand} --eval-interval", config.eval_interval, config.eval_interval >= 1,
+                 "must be at least 1 (every Nth image is a test view)", "pass e.g. 8")
+    fraction = config.train_split_fraction
+    check_option(f"{subcommand} --train-split-fraction", fraction,
+                 0 < fraction < 1 or (config.eval_mode != "fraction" and 0 < fraction <= 1),
+                 "must be within (0, 1) (the rest are test views)", "pass e.g. 0.9")
 
 
 class MipNerf360DataParser(ColmapDataParser):
@@ -109,6 +127,15 @@ class MipNerf360DataParser(ColmapDataParser):
 
     def _check_scene_folder(self) -> None:
         data = Path(self.config.data)
+        if data.is_file():
+            scene = next((p for p in data.parents if (p / self.config.colmap_path).is_dir()), None)
+            if data.name == "transforms.json":
+                fix = f"run: ns-train hpgs [options] nerfstudio-data --data {data.parent}"
+            elif scene is not None:
+                fix = f"pass --data {scene}"
+            else:
+                fix = f"pass --data the scene folder (the one holding {self.config.images_path}/ and {self.config.colmap_path}/)"
+            raise SceneDataError(f"--data {data} is a file, not a scene folder; {fix}")
         if not data.is_dir():
             raise SceneDataError(f"scene folder {data} does not exist; pass --data PATH to a Mip-NeRF 360 style scene")
         model = data / self.config.colmap_path
@@ -136,16 +163,22 @@ class MipNerf360DataParser(ColmapDataParser):
     def _get_all_images_and_cameras(self, recon_dir: Path):
         out = super()._get_all_images_and_cameras(recon_dir)
         out["frames"] = sorted(out["frames"], key=lambda frame: Path(frame["file_path"]).name)
-        folder = self._image_folder()
-        if not folder.is_dir():  # images_N is written from the full-resolution images below
-            folder = Path(self.config.data) / self.config.images_path
-        missing = [str(folder / Path(f["file_path"]).name) for f in out["frames"] if not (folder / Path(f["file_path"]).name).exists()]
+        folder, full = self._image_folder(), Path(self.config.data) / self.config.images_path
+
+        def source(frame) -> Path:
+            # images_N is (re)written from the full-resolution images below; one missing there (dropped as unreadable
+            # when images_N was written) is read, and checked, at full resolution
+            name = Path(frame["file_path"]).name
+            return folder / name if (folder / name).exists() else full / name
+
+        paths = [source(f) for f in out["frames"]]
+        missing = [str(p) for p in paths if not p.exists()]
         if missing:
             raise SceneDataError(
                 f"{len(missing)} images named in the COLMAP model are missing, e.g. {missing[0]}; restore them or re-run COLMAP"
             )
         self._all_image_filenames = [Path(f["file_path"]) for f in out["frames"]]
-        bad = self._unreadable_positions([folder / Path(f["file_path"]).name for f in out["frames"]])
+        bad = self._unreadable_positions(paths)
         self._kept = [i for i in range(len(out["frames"])) if i not in bad]
         out["frames"] = [out["frames"][i] for i in self._kept]
         return out
@@ -196,8 +229,10 @@ class MipNerf360DataParser(ColmapDataParser):
         return super()._setup_downscale_factor(image_filenames, mask_filenames, depth_filenames)
 
 
-def _make_downscaled_folder(source: Path, image_filenames: List[Path], factor: int, rounding: str) -> None:
-    """Write `images_N` beside `images` if it is missing or incomplete, atomically (temp folder, then rename)."""
+def _make_downscaled_folder(source: Path, image_filenames: List[Path], factor: int, rounding: str,
+                            model: str = "the COLMAP model") -> None:
+    """Write `images_N` beside `images` if it is missing or incomplete, atomically (temp folder, then rename).
+    `model`: what names the images (an unreadable one's fix is to remove it from there)."""
     target = source.parent / f"{source.name}_{factor}"
     wanted = [Path(p).relative_to(source) for p in image_filenames]
     if target.is_dir() and all((target / rel).exists() for rel in wanted):
@@ -212,7 +247,7 @@ def _make_downscaled_folder(source: Path, image_filenames: List[Path], factor: i
                     size = (round_fn(image.width / factor), round_fn(image.height / factor))
                     resized = image.resize(size, Image.Resampling.BICUBIC)
             except (OSError, SyntaxError, ValueError) as err:  # PIL's errors for unreadable files
-                raise SceneDataError(f"cannot read {source / rel} ({err}); restore it or remove it from the COLMAP model") from err
+                raise SceneDataError(f"cannot read {source / rel} ({err}); restore it or remove it from {model}") from err
             out = tmp / rel
             out.parent.mkdir(parents=True, exist_ok=True)
             resized.save(out, quality=95)
@@ -227,6 +262,36 @@ def _make_downscaled_folder(source: Path, image_filenames: List[Path], factor: i
         raise SceneDataError(
             f"could not write {target} ({err}); make the folder writable or pass the dataparser's --downscale-factor 1"
         ) from err
+
+
+def check_image_sizes(datasets, parser_config) -> None:
+    """Every photo of `datasets` (nerfstudio InputDatasets) must be its camera's size (nerfstudio asserts it, mid-run,
+    when it first loads the photo); a one-line SceneDataError naming the first that is not. Reads headers only."""
+    bad = []
+    for dataset in datasets:
+        scale, cameras = float(getattr(dataset, "scale_factor", 1.0)), dataset.cameras
+        for i, path in enumerate(dataset.image_filenames):
+            with Image.open(path) as image:
+                width, height = image.size
+            camera = (int(cameras.width[i]), int(cameras.height[i]))
+            if (int(width * scale), int(height * scale)) != camera:  # the dataset resizes photos by `scale`
+                bad.append((Path(path), (width, height), camera))
+    if not bad:
+        return
+    path, (width, height), (cam_w, cam_h) = bad[0]
+    if _RESOLUTION_FOLDER.match(path.parent.name):
+        fix = f"delete {path.parent} to have it rewritten from {path.parent.parent / 'images'}"
+    else:
+        if isinstance(parser_config, NerfstudioDataParserConfig):
+            data = Path(parser_config.data)
+            model = str(data if data.suffix == ".json" else data / "transforms.json")
+        elif isinstance(parser_config, ColmapDataParserConfig):
+            model = f"the COLMAP model ({Path(parser_config.data) / parser_config.colmap_path})"
+        else:
+            model = "the dataparser's cameras"
+        fix = f"replace it with the {cam_w}x{cam_h} photo its camera was made from, or remove it from {model}"
+    more = f" ({len(bad) - 1} more photos differ from their cameras too)" if len(bad) > 1 else ""
+    raise SceneDataError(f"{path} is {width}x{height} but its camera says {cam_w}x{cam_h}{more}; {fix}")
 
 
 def image_problem(path: Path) -> Optional[str]:
@@ -256,6 +321,9 @@ class HpgsNerfstudioDataParserConfig(NerfstudioDataParserConfig):
     load_3D_points: bool = True
     """Start the splat from the capture's points (`ply_file_path` in transforms.json, or sparse_pc.ply)."""
 
+    def __post_init__(self) -> None:
+        check_parser_values(self, "nerfstudio-data")
+
 
 class HpgsNerfstudio(Nerfstudio):
     """nerfstudio's `Nerfstudio` parser; the seed points come from `plyfile` and no question is asked."""
@@ -266,16 +334,25 @@ class HpgsNerfstudio(Nerfstudio):
     def _generate_dataparser_outputs(self, split: str = "train"):
         data = Path(self.config.data)
         meta_path = data if data.suffix == ".json" else data / "transforms.json"
+        if data.is_file() and data.suffix != ".json":
+            raise SceneDataError(f"--data {data} is a file, not a capture folder; pass the folder holding transforms.json "
+                                 "(or the transforms.json itself)")
         if not meta_path.is_file():
             raise SceneDataError(f"{meta_path} not found; pass --data to a folder made by ns-process-data (or a transforms.json)")
+        frames = read_transforms_frames(meta_path)
         factor = self.config.downscale_factor
+        paths = [meta_path.parent / f["file_path"] for f in frames]
+        # nerfstudio reads images_N/<file name> with a factor N (written below from images/ if missing)
+        missing = [p for p in paths if not p.exists()
+                   and not (factor is not None and factor > 1 and (meta_path.parent / f"images_{factor}" / p.name).exists())]
+        if missing:
+            raise SceneDataError(f"{len(missing)} images named in {meta_path} are missing, e.g. {missing[0]}; restore them "
+                                 f"or remove their frames from {meta_path.name}")
         if factor is not None and factor > 1:
             # nerfstudio reads images_N/<file name> and asks nothing: write it as mipnerf360 does (its rounding: floor)
-            frames = json.loads(meta_path.read_text())["frames"]
             source = meta_path.parent / "images"
-            paths = [meta_path.parent / f["file_path"] for f in frames]
             if all(p.parent == source for p in paths):
-                _make_downscaled_folder(source, paths, factor, "floor")
+                _make_downscaled_folder(source, paths, factor, "floor", model=str(meta_path))
         load_points, self.config.load_3D_points = self.config.load_3D_points, False  # the stock loader needs open3d
         try:
             outputs = super()._generate_dataparser_outputs(split)
@@ -296,6 +373,20 @@ class HpgsNerfstudio(Nerfstudio):
                 xyz = torch.cat([xyz, torch.ones_like(xyz[:, :1])], -1) @ transform.T * outputs.dataparser_scale
                 outputs.metadata.update({"points3D_xyz": xyz, "points3D_rgb": rgb})
         return outputs
+
+
+def read_transforms_frames(meta_path: Path) -> List[dict]:
+    """The frames of a transforms.json; a one-line error for a file that is not valid JSON or has no frames."""
+    try:
+        meta = json.loads(meta_path.read_text())
+    except (OSError, UnicodeDecodeError, ValueError) as err:  # json.JSONDecodeError is a ValueError
+        raise SceneDataError(f"{meta_path} is not readable JSON ({err}); restore it from the capture or re-run "
+                             "ns-process-data") from None
+    frames = meta.get("frames") if isinstance(meta, dict) else None
+    if not isinstance(frames, list) or not frames or not all(isinstance(f, dict) and "file_path" in f for f in frames):
+        raise SceneDataError(f"{meta_path} has no \"frames\" list of {{\"file_path\": ...}} entries; restore it from the "
+                             "capture or re-run ns-process-data")
+    return frames
 
 
 def read_ply_points(path: Path) -> Optional[Tuple[torch.Tensor, torch.Tensor]]:

@@ -15,6 +15,20 @@ class UserError(Exception):
     """A failure the user can fix; the message is one line naming the thing and the fix."""
 
 
+class OptionError(UserError):
+    """An option's value makes no sense; raised by configs' `__post_init__`, which tyro runs while it parses the
+    command line (before nerfstudio prints the config or makes a run folder). Not a ValueError: tyro would catch that
+    and draw its own error box."""
+
+
+def check_option(flag: str, value: object, ok: bool, need: str, fix: str = "") -> None:
+    """Raise `OptionError` "FLAG VALUE: NEED[; FIX]" unless `ok`; a sequence value is written as its words."""
+    if ok:
+        return
+    shown = " ".join(map(str, value)) if isinstance(value, (tuple, list)) else str(value)
+    raise OptionError(f"{flag} {shown or '(empty)'}: {need}" + (f"; {fix}" if fix else ""))
+
+
 def print_user_errors(kind, value, traceback, fallback) -> None:
     if issubclass(kind, UserError) and not os.environ.get("HPGS_TRACEBACK"):
         print(f"error: {value}", file=sys.stderr)

@@ -54,6 +54,21 @@ class HpgsTrainer(Trainer):
         """The first step this process trains: 0, or the step after the checkpoint it resumed from."""
         return int(self._start_step)
 
+    def setup(self, test_mode: str = "val") -> None:
+        """nerfstudio's set-up; one that fails (a bad scene, a bad checkpoint) removes the run folder ns-train made
+        for it just before, if that holds nothing but this run's config.yml, so the error is all that is left."""
+        import contextlib
+
+        import yaml
+
+        from hpgs_ns.atomic_write import removed_on_failure
+
+        own = {"config.yml": yaml.dump(self.config)}  # what ns-train's `save_config` wrote
+        cleanup = removed_on_failure(self.base_dir, own, stop_at=self.config.output_dir) if self.local_rank == 0 \
+            else contextlib.nullcontext()
+        with cleanup:
+            super().setup(test_mode=test_mode)
+
     def _load_checkpoint(self) -> None:
         super()._load_checkpoint()
         if self._start_step > 0:

@@ -230,6 +230,9 @@ class TrainPref:
         """Split, train and return the model (with `meta` filled); `main` also saves it."""
         check_recipe(self.backbone, self.feature_transform)  # before reading images: a wrong pairing fails at once
         finetune = self.trains_backbone
+        if not self.pairs:  # tyro lets a repeatable option be left out
+            raise PairsError("--pairs is required: pass --pairs PAIRS.csv (written by `hpgs label DIR`); repeat it for "
+                             "several files")
         pairs = read_usable_pairs(self.pairs)
         if len(pairs) < 2:
             raise PairsError(f"{', '.join(map(str, self.pairs))}: {len(pairs)} labelled pairs; label more with "

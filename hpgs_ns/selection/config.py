@@ -10,6 +10,7 @@ still works, with a warning (`take_datamanager_options`), and config.yml files o
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any, Dict, Optional, Tuple, Type
@@ -17,6 +18,7 @@ from typing import Any, Dict, Optional, Tuple, Type
 from nerfstudio.configs.base_config import InstantiateConfig
 from nerfstudio.utils.rich_utils import CONSOLE
 
+from hpgs_ns.errors import check_option
 from hpgs_ns.selectors import (
     BlendSelectorConfig,
     CondorcetSelectorConfig,
@@ -89,6 +91,20 @@ class SelectionConfig(InstantiateConfig):
     resolution) restart at the round's step. The trainer's step keeps counting; the run ends at
     max-num-iterations."""
 
+    def __post_init__(self) -> None:
+        # tyro builds this config while it parses the command line: a value that makes no sense is a one-line error
+        # before nerfstudio prints the config or makes a run folder. (A config.yml is read without __init__.)
+        self.check_values()
+
+    def check_values(self, given_as: Optional[Dict[str, str]] = None) -> None:
+        """Raise `OptionError` naming the first option whose value makes no sense, by its flag. `given_as`: option
+        name -> the flag it was given as (the 0.2 spelling's, for values moved here); only those are checked then."""
+        for name, (ok, need, fix) in VALUE_RULES.items():
+            value = getattr(self, name)
+            if value is not None and (given_as is None or name in given_as):
+                flag = (given_as or {}).get(name, f"--pipeline.selection.{name.replace('_', '-')}")
+                check_option(flag, value, ok(value), need, fix)
+
     def selector_config(self, name: Optional[str] = None) -> SelectorConfig:
         """The options of selector `name` (default: the chosen one): its group above for a built-in one, else the
         registry's defaults."""
@@ -96,6 +112,21 @@ class SelectionConfig(InstantiateConfig):
         own = getattr(self, name, None)
         return own if isinstance(own, SelectorConfig) else registry.selector_config(name)
 
+
+# Numeric options' sensible values: name -> (test, what the value must be, the fix).
+VALUE_RULES = {
+    "select_every": (lambda v: v >= 0, "must be >= 0 (a round every this many steps)",
+                     "pass 0 for no periodic rounds, or --pipeline.selection.select-at STEP ..."),
+    "select_at": (lambda v: all(s >= 1 for s in v), "round steps must be >= 1 (no round runs at step 0)",
+                  "drop the steps below 1"),
+    "views_per_round": (lambda v: v >= 1, "must be at least 1 (the views each round adds)",
+                        "pass 1 or more (--pipeline.selection.max-rounds 0 runs no rounds)"),
+    "max_rounds": (lambda v: v >= 0, "must be >= 0", "pass 0 for no rounds"),
+    "stop_when_gain_below": (lambda v: math.isfinite(v), "must be a finite number of dB",
+                             "pass e.g. 0.05, or leave it out to run every round"),
+    "snapshot_every": (lambda v: v >= 0, "must be >= 0", "pass 0 for no snapshots"),
+    "render_short_side": (lambda v: v >= 1, "must be at least 1 pixel", "leave it out to render at the dataset's resolution"),
+}
 
 # Options that moved from the datamanager to `--pipeline.selection` in 0.3: old name -> new name.
 MOVED_FROM_DATAMANAGER: Dict[str, str] = {
@@ -112,6 +143,7 @@ def take_datamanager_options(datamanager: Any, selection: SelectionConfig, warn:
     `selection`, leaving the datamanager's copies unset. Returns {old flag: new flag} of what moved; warns once per
     call when `warn` (a command line or script in the old spelling)."""
     moved: Dict[str, str] = {}
+    given_as: Dict[str, str] = {}
     for old, new in MOVED_FROM_DATAMANAGER.items():
         value = getattr(datamanager, old, None)
         if value is None:
@@ -119,6 +151,7 @@ def take_datamanager_options(datamanager: Any, selection: SelectionConfig, warn:
         setattr(selection, new, value)
         setattr(datamanager, old, None)
         moved[f"--pipeline.datamanager.{old.replace('_', '-')}"] = f"--pipeline.selection.{new.replace('_', '-')}"
+        given_as[new] = f"--pipeline.datamanager.{old.replace('_', '-')}"
     for group in MOVED_GROUPS:
         value = getattr(datamanager, group, None)
         # The datamanager keeps a default group (tyro needs one to parse the old flags); only a changed one moves.
@@ -127,6 +160,7 @@ def take_datamanager_options(datamanager: Any, selection: SelectionConfig, warn:
             setattr(datamanager, group, type(value)())
             moved[f"--pipeline.datamanager.{group}.*"] = f"--pipeline.selection.{group}.*"
     if moved and warn:
+        selection.check_values(given_as)  # the values given in the old spelling, named as given
         spelled = ", ".join(f"{old} -> {new}" for old, new in moved.items())
         CONSOLE.print(f"[yellow]deprecated option spelling (hpgs-ns 0.3 moved the selection options): {spelled}",
                       soft_wrap=True)
