@@ -172,6 +172,10 @@ class ActiveDatamanager(FullImageDatamanager):
         self.excluded = {self._view_index(v, "excluded") for v in self.config.exclude_views}
         self.active: List[int] = self._initial_views()
         self.history: List[RoundRecord] = []
+        self.selection_signature: Optional[Dict[str, str]] = None
+        """The run's selection options as the checkpoint keeps them (set by the pipeline; see `HpgsTrainer`)."""
+        self.loaded_selection_signature: Optional[Dict[str, str]] = None
+        """The checkpoint's, once one is loaded (None for checkpoints written before 0.3)."""
         if self.config.strict_init:
             self._keep_points_seen_by_initial_views()
         self.train_unseen_cameras = self.sample_train_cameras()
@@ -291,8 +295,14 @@ class ActiveDatamanager(FullImageDatamanager):
 
     def get_extra_state(self) -> Dict[str, Any]:
         # Plain Python types only, so checkpoints load with torch.load(weights_only=True).
-        return {"version": 1, "image_names": list(self.image_names), "active": list(self.active),
-                "history": [record.to_dict() for record in self.history]}
+        state = {"version": 1, "image_names": list(self.image_names), "active": list(self.active),
+                 "history": [record.to_dict() for record in self.history]}
+        if self.selection_signature:
+            state["selection"] = dict(self.selection_signature)
+        # Where the shuffled pass over the active views stands: a resumed run visits them in the same order.
+        state["train_unseen"] = [int(i) for i in self.train_unseen_cameras]
+        state["generator"] = self.generator.get_state()
+        return state
 
     def set_extra_state(self, state: Dict[str, Any]) -> None:
         saved = state.get("image_names")
@@ -303,9 +313,13 @@ class ActiveDatamanager(FullImageDatamanager):
             )
         self.active = [int(i) for i in state["active"]]
         self.history = [RoundRecord.from_dict(record) for record in state["history"]]
+        self.loaded_selection_signature = state.get("selection")
         if saved != self.image_names:  # 0.1 names in the round log: the views' names now
             by_file = {Path(n).name: n for n in self.image_names}
             for record in self.history:
                 record.chosen = [by_file[n] for n in record.chosen]
                 record.scores = {by_file[n]: v for n, v in record.scores.items()}
-        self.train_unseen_cameras = self.sample_train_cameras()
+        if "generator" in state:
+            self.generator.set_state(state["generator"])
+        unseen = [int(i) for i in state.get("train_unseen", [])]
+        self.train_unseen_cameras = unseen if unseen and set(unseen) <= set(self.active) else self.sample_train_cameras()

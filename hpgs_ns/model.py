@@ -226,10 +226,16 @@ class HpgsSplatfactoModel(SplatfactoModel):
         state: Dict[str, Any] = {"step_offset": int(self.step_offset)}
         if self.keep_initial_in_checkpoint:
             state["initial_gaussians"] = dict(self.initial_gaussians)
+        # The densification strategy's running statistics (gradient sums, visibility counts since the last
+        # refine): a resumed run refines from the same numbers as an uninterrupted one.
+        state["strategy_state"] = {k: v for k, v in self.strategy_state.items() if v is None or isinstance(v, (torch.Tensor, float, int))}
         return state
 
     def set_extra_state(self, state: Dict[str, Any]) -> None:
         self.step_offset = int(state.get("step_offset", 0))
+        if "strategy_state" in state:
+            saved = state["strategy_state"]
+            self.strategy_state.update({k: v.to(self.device) if isinstance(v, torch.Tensor) else v for k, v in saved.items()})
         if "initial_gaussians" in state:
             self.initial_gaussians = {k: v.detach().cpu().clone() for k, v in state["initial_gaussians"].items()}
 

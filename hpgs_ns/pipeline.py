@@ -55,6 +55,7 @@ class HpgsPipeline(VanillaPipeline):
         super().__init__(config, device, test_mode, *args, **kwargs)
         training = test_mode == "val"
         selection = config.selection
+        self.datamanager.selection_signature = selection.resume_signature(self.datamanager.config.seed)
         self.rounds: Optional[SelectionRounds] = selection.setup(datamanager=self.datamanager, model=self.model) if training else None
         self.snapshots: Optional[Snapshots] = Snapshots(selection.snapshot_every, self.datamanager, self.model) if training else None
         # A viewer element, not an nn.Module: checkpoints' keys stay the same.

@@ -1,7 +1,13 @@
-"""nerfstudio's trainer with what `hpgs` runs need: resumes that end on time, and an optional final evaluation.
+"""nerfstudio's trainer with what `hpgs` runs need: resumes that continue training, checkpoints that are never
+half-written, and an optional final evaluation.
 
-- A resumed run (`--load-dir`) ends at the configured total step count; stock nerfstudio runs another full
-  `max_num_iterations` after the checkpoint's step.
+- A resumed run (`--load-dir`, `--load-checkpoint`) ends at the configured total step count (stock nerfstudio runs
+  another full `max_num_iterations` after the checkpoint's step), and trains: splatfacto's `load_state_dict`
+  replaces the Gaussian parameters with new tensors, which stock nerfstudio's optimizers (built before the load)
+  never see, so a stock resume silently stops training and crashes at its first densification. Here the optimizers
+  are rebound to the loaded parameters before their state is loaded.
+- Checkpoints are written to a temp file and renamed; `--load-dir` skips (with one line) a checkpoint that does not
+  load, and a resume whose selection options differ from the checkpoint's is refused with one line.
 - A config.yml written by hpgs-ns 0.1 (a VanillaPipeline, rounds inside the datamanager) is upgraded to the
   `hpgs` pipeline when it is trained again (`--load-config`), so its selection rounds still run.
 
@@ -12,15 +18,19 @@ from the training process: it saves `ns-eval`'s ~15 s of start-up per run, which
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Dict, List, Optional, Type
+from typing import Any, Dict, List, Optional, Type
 
+import torch
 from nerfstudio.engine.trainer import Trainer, TrainerConfig
+from nerfstudio.utils import comms
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from hpgs_ns import schedules
 from hpgs_ns.atomic_write import write_json_atomic
+from hpgs_ns.errors import UserError
 from hpgs_ns.pipeline import upgrade_pipeline_config
 
 # config.yml files of hpgs-ns 0.1 name the scheduler classes here.
@@ -70,17 +80,171 @@ class HpgsTrainer(Trainer):
             super().setup(test_mode=test_mode)
 
     def _load_checkpoint(self) -> None:
-        super()._load_checkpoint()
-        if self._start_step > 0:
-            # nerfstudio's loop runs max_num_iterations steps after the checkpoint: make that the steps left.
-            self.config.max_num_iterations = max(self.end_step - self._start_step, 0)
-            self.step = self._start_step - 1  # what `_after_train` saves if nothing is left to run
+        path, loaded = self._read_checkpoint()
+        if loaded is None:
+            CONSOLE.print("No Nerfstudio checkpoint to load, so training from scratch.")
+            return
+        step = int(loaded["step"])
+        self._start_step = step + 1
+        self.pipeline.load_pipeline(loaded["pipeline"], step)
+        check_resume_matches(self.pipeline)
+        # splatfacto's load_state_dict made new parameter tensors: point the optimizers at them, then load their
+        # state (Adam's moments and step counts land on the parameters the model trains).
+        rebind_optimizers(self.optimizers, self.pipeline.get_param_groups())
+        self.optimizers.load_optimizers(loaded["optimizers"])
+        if "schedulers" in loaded and self.config.load_scheduler:
+            self.optimizers.load_schedulers(loaded["schedulers"])
+        self.grad_scaler.load_state_dict(loaded["scalers"])
+        if "random_state" in loaded:
+            set_random_state(loaded["random_state"])
+        model = self.pipeline.model
+        if hasattr(model, "step_offset"):  # splatfacto's load_state_dict leaves its step at 30000
+            model.step = self._start_step - int(model.step_offset)
+        CONSOLE.print(f"Done loading Nerfstudio checkpoint from {path}")
+        # nerfstudio's loop runs max_num_iterations steps after the checkpoint: make that the steps left.
+        self.config.max_num_iterations = max(self.end_step - self._start_step, 0)
+        self.step = self._start_step - 1  # what `_after_train` saves if nothing is left to run
+
+    def _read_checkpoint(self):
+        """(path, state) of the checkpoint to resume from, or (None, None). With `--load-dir` and no
+        `--load-step`, the newest checkpoint that loads: one that does not (a kill mid-save under stock
+        nerfstudio) is skipped with one line."""
+        load_dir, named = self.config.load_dir, self.config.load_checkpoint
+        if load_dir is None and named is None:
+            return None, None
+        if load_dir is not None and self.config.load_step is None:
+            load_dir = Path(load_dir)
+            if not load_dir.is_dir():
+                raise CheckpointError(f"--load-dir {load_dir} is not a folder; pass the run's nerfstudio_models folder")
+            paths = sorted(load_dir.glob("step-*.ckpt"), key=checkpoint_step, reverse=True)
+            for path in paths:
+                try:
+                    return path, load_checkpoint_file(path)
+                except CheckpointError as err:
+                    CONSOLE.print(f"[yellow]skipping {path.name}: {err}", soft_wrap=True)
+            raise CheckpointError(f"--load-dir {load_dir} holds no checkpoint that loads (step-*.ckpt); "
+                                  "start a new run without --load-dir")
+        path = Path(named) if load_dir is None else Path(load_dir) / f"step-{self.config.load_step:09d}.ckpt"
+        return path, load_checkpoint_file(path)
+
+    def save_checkpoint(self, step: int) -> None:
+        """nerfstudio's checkpoint, written to a temp file beside the checkpoint folder and renamed, so a kill
+        mid-save never leaves a truncated `step-*.ckpt` for `--load-dir`, `ns-eval` or `ns-viewer` to pick."""
+        if not comms.is_main_process():
+            return
+        self.checkpoint_dir.mkdir(parents=True, exist_ok=True)
+        path = self.checkpoint_dir / f"step-{step:09d}.ckpt"
+        pipeline = self.pipeline.module if hasattr(self.pipeline, "module") else self.pipeline
+        state = {
+            "step": step,
+            "pipeline": pipeline.state_dict(),
+            "optimizers": {k: v.state_dict() for k, v in self.optimizers.optimizers.items()},
+            "schedulers": {k: v.state_dict() for k, v in self.optimizers.schedulers.items()},
+            "scalers": self.grad_scaler.state_dict(),
+            # Not in stock checkpoints: a resumed run draws the same random backgrounds as an uninterrupted one.
+            "random_state": random_state(),
+        }
+        # The temp file sits in the run folder, not the checkpoint folder: nerfstudio parses every name there.
+        tmp = self.checkpoint_dir.parent / f".{path.name}.{os.getpid()}.tmp"
+        for stale in self.checkpoint_dir.parent.glob(".step-*.ckpt.*.tmp"):
+            stale.unlink(missing_ok=True)  # left by a run killed mid-save
+        try:
+            torch.save(state, tmp)
+            os.replace(tmp, path)
+        finally:
+            tmp.unlink(missing_ok=True)
+        if self.config.save_only_latest_checkpoint:
+            for other in self.checkpoint_dir.glob("*.ckpt"):
+                if other != path:
+                    other.unlink()
 
     def _after_train(self) -> None:
         # Before the parent's part: with the viewer on, it never returns.
         if self.config.final_eval_json is not None:
+            rng = random_state()
             write_final_eval(self, Path(self.config.final_eval_json))
+            set_random_state(rng)  # the final checkpoint resumes as if no evaluation had run
         super()._after_train()
+
+
+class CheckpointError(UserError, RuntimeError):
+    """A checkpoint cannot be resumed from."""
+
+
+def checkpoint_step(path: Path) -> int:
+    """The step in a nerfstudio checkpoint's name (`step-000001234.ckpt` -> 1234; -1 if none)."""
+    digits = path.stem.partition("-")[2]
+    return int(digits) if digits.isdigit() else -1
+
+
+def load_checkpoint_file(path: Path) -> Dict[str, Any]:
+    """A checkpoint's state (on the CPU), or CheckpointError naming why it cannot be read."""
+    if not path.is_file():
+        raise CheckpointError(f"checkpoint {path} does not exist; pass one of the run's nerfstudio_models/step-*.ckpt")
+    try:
+        state = torch.load(path, map_location="cpu")
+    except Exception as err:  # truncated zip, unpickling error, ...: all mean the same to the user
+        raise CheckpointError(f"{path} does not load ({type(err).__name__}: {str(err).splitlines()[0][:120]}); "
+                              "it is probably truncated") from err
+    if not isinstance(state, dict) or not {"step", "pipeline", "optimizers"} <= set(state):
+        raise CheckpointError(f"{path} is not a nerfstudio checkpoint (no step, pipeline and optimizers)")
+    return state
+
+
+def random_state() -> Dict[str, Any]:
+    """The process's random streams (torch, CUDA, Python, numpy) as tensors and plain types (weights_only-safe)."""
+    import random
+
+    import numpy as np
+
+    kind, keys, pos, has_gauss, cached = np.random.get_state()
+    return {"torch": torch.get_rng_state(), "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else [],
+            "python": random.getstate(), "numpy": [str(kind), torch.from_numpy(keys.astype("int64")), int(pos),
+                                                    int(has_gauss), float(cached)]}
+
+
+def set_random_state(state: Dict[str, Any]) -> None:
+    import random
+
+    import numpy as np
+
+    torch.set_rng_state(state["torch"])
+    if state.get("cuda") and torch.cuda.is_available() and len(state["cuda"]) == torch.cuda.device_count():
+        torch.cuda.set_rng_state_all(state["cuda"])
+    version, internal, gauss = state["python"]
+    random.setstate((version, tuple(internal), gauss))
+    kind, keys, pos, has_gauss, cached = state["numpy"]
+    np.random.set_state((kind, keys.numpy().astype("uint32"), pos, has_gauss, cached))
+
+
+def rebind_optimizers(optimizers, param_groups: Dict[str, List[torch.nn.Parameter]]) -> None:
+    """Make each optimizer (one per parameter group, as nerfstudio builds them) hold the group's current parameter
+    tensors, moving any state it already has onto them."""
+    for name, optimizer in optimizers.optimizers.items():
+        params = list(param_groups.get(name, []))
+        group = optimizer.param_groups[0]
+        if len(optimizer.param_groups) != 1 or len(group["params"]) != len(params):
+            continue  # not a one-group-per-name optimizer: leave it as nerfstudio built it
+        for old, new in zip(group["params"], params):
+            if old is not new and old in optimizer.state:
+                optimizer.state[new] = optimizer.state.pop(old)
+        group["params"] = params
+        optimizers.parameters[name] = params
+
+
+def check_resume_matches(pipeline) -> None:
+    """Refuse (one line) a resume whose selection options differ from those the checkpoint was trained with: the
+    round log would mix two selectors' or schedules' choices."""
+    datamanager = pipeline.datamanager
+    saved = getattr(datamanager, "loaded_selection_signature", None)
+    now = getattr(datamanager, "selection_signature", None)
+    if not saved or not now:
+        return  # a checkpoint written before 0.3, or not an hpgs pipeline
+    changed = [key for key in sorted(set(saved) | set(now)) if saved.get(key) != now.get(key)]
+    if changed:
+        diff = "; ".join(f"{key}: checkpoint {saved.get(key, '(unset)')}, now {now.get(key, '(unset)')}" for key in changed)
+        raise CheckpointError(f"this resume changes what the checkpoint was trained with ({diff}); resume with the "
+                              "checkpoint's options, or start a new run without --load-dir")
 
 
 def write_final_eval(trainer: Trainer, path: Path) -> Path:

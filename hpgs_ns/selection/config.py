@@ -112,6 +112,18 @@ class SelectionConfig(InstantiateConfig):
         own = getattr(self, name, None)
         return own if isinstance(own, SelectorConfig) else registry.selector_config(name)
 
+    def resume_signature(self, seed: int) -> Dict[str, str]:
+        """What a resumed run must keep from its checkpoint ({option: value as text}): the selector, its options,
+        the seed and the round schedule. max-rounds and the step count may grow (a longer run adds rounds)."""
+        signature = {"selector": str(self.selector), "seed": str(int(seed)), "select-every": str(self.select_every),
+                     "select-at": str(list(self.select_at)), "views-per-round": str(self.views_per_round),
+                     "reset-after-add": str(bool(self.reset_after_add))}
+        options = self.selector_config()
+        for f in fields(options):
+            if not f.name.startswith("_"):
+                signature[f"{self.selector}.{f.name.replace('_', '-')}"] = str(getattr(options, f.name))
+        return signature
+
 
 # Numeric options' sensible values: name -> (test, what the value must be, the fix).
 VALUE_RULES = {
