@@ -34,3 +34,4 @@ def test_ns_train_with_a_bad_path_prints_the_fix_without_a_traceback(tmp_path):
     assert "Traceback" not in proc.stderr + proc.stdout
     last = proc.stderr.strip().splitlines()[-1]
     assert last == f"error: scene folder {tmp_path / 'nope'} does not exist; pass --data PATH to a Mip-NeRF 360 style scene"
+    assert list((tmp_path / "out").rglob("*")) == []  # the run folder ns-train made before set-up failed is gone
