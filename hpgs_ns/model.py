@@ -188,6 +188,29 @@ class HpgsSplatfactoModel(SplatfactoModel):
             backend=self.rasterizer_name,
         )
 
+    # ---- after an add (`hpgs_ns.selection.after_add`) -------------------------------------------------------
+
+    refine_until: int = 0
+    """Model step before which densification runs even past stop-split-at (set by after-add refine-steps)."""
+
+    def extend_refinement(self, until_step: int) -> int:
+        """Keep splatfacto's densification (split, duplicate, cull, periodic opacity reset) running until trainer
+        step `until_step`, even past stop-split-at. Returns the model step it now stops at."""
+        self.refine_until = max(int(self.refine_until), int(until_step) - int(self.step_offset))
+        self.strategy.refine_stop_iter = max(int(self.config.stop_split_at), self.refine_until)
+        return int(self.strategy.refine_stop_iter)
+
+    @torch.no_grad()
+    def reset_opacities(self, optimizers: Dict[str, torch.optim.Optimizer]) -> int:
+        """Splatfacto's periodic opacity reset, now (gsplat's `reset_opa` at twice the cull threshold, opacities' Adam
+        moments cleared). Returns how many Gaussians it lowered."""
+        from gsplat.strategy.ops import reset_opa  # pure PyTorch: safe on a CPU machine
+
+        value = float(self.config.cull_alpha_thresh) * 2.0
+        lowered = int((self.gauss_params["opacities"] > torch.logit(torch.tensor(value))).sum())
+        reset_opa(params=self.gauss_params, optimizers=optimizers, state=self.strategy_state, value=value)
+        return lowered
+
     # ---- reset to step 0 (reset-after-add) -----------------------------------------------------------------
 
     def keep_initial_for_resets(self) -> None:
@@ -218,12 +241,13 @@ class HpgsSplatfactoModel(SplatfactoModel):
         for optimizer in optimizers.values():
             optimizer.state = defaultdict(dict)  # fresh Adam moments and step counts, as at step 0
         self.strategy_state = self.strategy.initialize_state(scene_scale=1.0)
+        self.refine_until, self.strategy.refine_stop_iter = 0, int(self.config.stop_split_at)
         self.step_offset = int(step)
         self.step = 0
 
     def get_extra_state(self) -> Dict[str, Any]:
         # Plain ints and tensors only, so checkpoints load with torch.load(weights_only=True).
-        state: Dict[str, Any] = {"step_offset": int(self.step_offset)}
+        state: Dict[str, Any] = {"step_offset": int(self.step_offset), "refine_until": int(self.refine_until)}
         if self.keep_initial_in_checkpoint:
             state["initial_gaussians"] = dict(self.initial_gaussians)
         # The densification strategy's running statistics (gradient sums, visibility counts since the last
@@ -233,6 +257,8 @@ class HpgsSplatfactoModel(SplatfactoModel):
 
     def set_extra_state(self, state: Dict[str, Any]) -> None:
         self.step_offset = int(state.get("step_offset", 0))
+        if state.get("refine_until"):
+            self.extend_refinement(int(state["refine_until"]) + self.step_offset)
         if "strategy_state" in state:
             saved = state["strategy_state"]
             self.strategy_state.update({k: v.to(self.device) if isinstance(v, torch.Tensor) else v for k, v in saved.items()})

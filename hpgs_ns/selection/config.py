@@ -11,7 +11,7 @@ still works, with a warning (`take_datamanager_options`), and config.yml files o
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, fields
+from dataclasses import MISSING, dataclass, field, fields
 from pathlib import Path
 from typing import Any, Dict, Optional, Tuple, Type
 
@@ -19,6 +19,7 @@ from nerfstudio.configs.base_config import InstantiateConfig
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from hpgs_ns.errors import check_option
+from hpgs_ns.selection.after_add import AfterAddConfig
 from hpgs_ns.selectors import (
     BlendSelectorConfig,
     CondorcetSelectorConfig,
@@ -84,12 +85,22 @@ class SelectionConfig(InstantiateConfig):
     `<run dir>/snapshots/step-NNNNNN/` (what `hpgs collect` labels). Test views are never rendered."""
     render_short_side: Optional[int] = None
     """Default render size (short side, pixels) for selectors that render views; None = dataset resolution."""
+    after_add: AfterAddConfig = field(default_factory=AfterAddConfig)
+    """How training reacts to the views a round adds (`hpgs_ns.selection.after_add`): refinement window, opacity
+    reset, learning-rate rewind. All off: 0.3's schedule, keyed to step 0."""
     reset_after_add: bool = False
     """After each round, start training over from the new view set, as FisherRF (Jiang et al., ECCV 2024) does:
     the Gaussians go back to the step-0 ones, optimizer moments, densification state and camera optimizer are
     cleared, and learning rates and splatfacto's step-keyed schedule (densification, opacity reset, SH degree,
     resolution) restart at the round's step. The trainer's step keeps counting; the run ends at
     max-num-iterations."""
+
+    def __setstate__(self, state: dict) -> None:
+        # A config.yml written before an option existed (PyYAML restores attributes, not __init__): its default.
+        self.__dict__.update(state)
+        for f in fields(self):
+            if f.name not in state and f.default_factory is not MISSING:
+                setattr(self, f.name, f.default_factory())
 
     def __post_init__(self) -> None:
         # tyro builds this config while it parses the command line: a value that makes no sense is a one-line error
@@ -117,7 +128,7 @@ class SelectionConfig(InstantiateConfig):
         the seed and the round schedule. max-rounds and the step count may grow (a longer run adds rounds)."""
         signature = {"selector": str(self.selector), "seed": str(int(seed)), "select-every": str(self.select_every),
                      "select-at": str(list(self.select_at)), "views-per-round": str(self.views_per_round),
-                     "reset-after-add": str(bool(self.reset_after_add))}
+                     "reset-after-add": str(bool(self.reset_after_add)), "after-add": self.after_add.describe()}
         options = self.selector_config()
         for f in fields(options):
             if not f.name.startswith("_"):

@@ -38,6 +38,8 @@ class RoundRecord:
     """What the selector computed and skipped (`Selection.work`)."""
     num_gaussians_before_reset: Optional[int] = None
     num_gaussians_after_reset: Optional[int] = None
+    after_add: Dict[str, float] = field(default_factory=dict)
+    """What `--pipeline.selection.after-add` did after this round (refine_until, opacity_reset, lr positions)."""
 
     def to_dict(self) -> Dict[str, Any]:
         """Plain types only (checkpoints load with `torch.load(weights_only=True)`); the reset counts only when a
@@ -51,6 +53,8 @@ class RoundRecord:
         if self.num_gaussians_before_reset is not None:
             out["num_gaussians_before_reset"] = int(self.num_gaussians_before_reset)
             out["num_gaussians_after_reset"] = int(self.num_gaussians_after_reset or 0)
+        if self.after_add:
+            out["after_add"] = {k: float(v) for k, v in self.after_add.items()}
         return out
 
     @classmethod
@@ -64,6 +68,7 @@ class RoundRecord:
             work={k: float(v) for k, v in data.get("work", {}).items()},
             num_gaussians_before_reset=data.get("num_gaussians_before_reset"),
             num_gaussians_after_reset=data.get("num_gaussians_after_reset"),
+            after_add={k: float(v) for k, v in data.get("after_add", {}).items()},
         )
 
     @property

@@ -27,6 +27,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from hpgs_ns.atomic_write import write_json_atomic
 from hpgs_ns.errors import UserError
 from hpgs_ns.schedules import restart_schedules
+from hpgs_ns.selection.after_add import apply_after_add
 from hpgs_ns.selection.candidate_log import CandidateLog
 from hpgs_ns.selection.early_stop import GainModel
 from hpgs_ns.selection.records import RoundRecord, StopRecord
@@ -149,6 +150,9 @@ class SelectionRounds:
                 self.run_round(step)
                 if self.config.reset_after_add:
                     self.reset_model(step, attrs.optimizers)
+                elif self.config.after_add.enabled and attrs.optimizers is not None:
+                    self.datamanager.history[-1].after_add = apply_after_add(self.config.after_add, self.model, attrs.optimizers, step)
+                    self.write_log()
             elif self.config.eval_each_round and self.is_scheduled(step):
                 # No round here (none left, or a reference run): the test PSNR at the step still says what the
                 # views so far are worth against a run that added others (early_stop's calibration).

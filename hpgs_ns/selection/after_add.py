@@ -1,0 +1,85 @@
+"""What training does when a round adds views: `--pipeline.selection.after-add.*`.
+
+splatfacto keys everything to step 0: the means' learning rate decays to its floor, densification stops at
+`stop-split-at` and opacity resets come every `reset-alpha-every` refines. A view added late meets a splat that can
+no longer move, grow or drop what the first views built (floaters in front of the new view stay). Measured on the
+GPU: fox (random start) loses 8 dB against the same 20 views trained from step 0 (shared/design/schedule-pilot.md).
+Each mechanism below gives the views that arrive late some of what the early ones had; all off is 0.3's schedule.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+from typing import Dict, Iterable
+
+from nerfstudio.utils.rich_utils import CONSOLE
+
+from hpgs_ns.errors import UserError
+
+
+class AfterAddError(UserError, ValueError):
+    """An after-add option value that makes no sense."""
+
+
+@dataclass
+class AfterAddConfig:
+    """How training reacts to views added by a round."""
+
+    refine_steps: int = 0
+    """Densify, split and cull for this many steps after each add, even past splatfacto's stop-split-at (and with
+    its periodic opacity resets inside that window): the new view can grow Gaussians where it sees detail and prune
+    the ones it shows to be floaters. 0: refinement ends at stop-split-at whatever arrives after it."""
+    reset_opacity: bool = False
+    """Reset opacities at each add, as splatfacto does every reset-alpha-every refines: Gaussians the views do not
+    need fade out and are culled, including floaters that only the first views tolerated."""
+    lr_rewind: int = 0
+    """Rewind the learning-rate schedules (the means' decay, the camera optimizer's) by this many steps at each add,
+    so the Gaussians can still move to fit the new view. 0: the schedules run from step 0 untouched."""
+
+    def __post_init__(self) -> None:
+        for name in ("refine_steps", "lr_rewind"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or value < 0:
+                raise AfterAddError(f"--pipeline.selection.after-add.{name.replace('_', '-')} {value} must be a whole "
+                                    "number of steps >= 0 (0 turns it off)")
+
+    @property
+    def enabled(self) -> bool:
+        return bool(self.refine_steps or self.reset_opacity or self.lr_rewind)
+
+    def describe(self) -> str:
+        """The options that are on, as flags (for the log and the start-up line)."""
+        on = [f"{f.name.replace('_', '-')} {getattr(self, f.name)}" for f in fields(self) if getattr(self, f.name)]
+        return ", ".join(on) if on else "off"
+
+
+def rewind_schedules(schedulers: Dict[str, object], steps: int, names: Iterable[str] = ()) -> Dict[str, int]:
+    """Move each learning-rate scheduler (`names`, default all) `steps` back along its schedule (not before its
+    start). nerfstudio steps its schedulers once per iteration without a step, so `last_epoch` is the position; it is
+    in the scheduler's state_dict, so `--load-dir` restores the rewound position. Returns {name: new position}."""
+    chosen = set(names) or set(schedulers)
+    positions = {}
+    for name, scheduler in schedulers.items():
+        if name not in chosen:
+            continue
+        position = max(int(scheduler.last_epoch) - int(steps), 0)
+        scheduler.last_epoch = position - 1
+        scheduler.step()  # -> last_epoch = position; every group's lr = initial lr x schedule(position)
+        positions[name] = position
+    return positions
+
+
+def apply_after_add(config: AfterAddConfig, model, optimizers, step: int) -> Dict[str, float]:
+    """Run the enabled mechanisms for an add at trainer step `step`; returns what was done (for the round log)."""
+    done: Dict[str, float] = {}
+    if config.refine_steps:
+        done["refine_until"] = float(model.extend_refinement(step + config.refine_steps))
+    if config.reset_opacity:
+        done["opacity_reset"] = float(model.reset_opacities(optimizers.optimizers))
+    if config.lr_rewind:
+        # Only the schedules that decay: the Gaussians' other groups run at constant rates.
+        for name, position in rewind_schedules(optimizers.schedulers, config.lr_rewind).items():
+            done[f"lr_position.{name}"] = float(position)
+    if done:
+        CONSOLE.print(f"after add (step {step}): " + ", ".join(f"{k} {v:g}" for k, v in done.items()))
+    return done

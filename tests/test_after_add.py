@@ -1,0 +1,107 @@
+"""`--pipeline.selection.after-add.*` on the tiny scene with the CPU rasterizer: after the round at step 50,
+densification runs again although stop-split-at (45) has passed, opacities are reset, and the means' learning rate
+is rewound 30 steps; the state survives `--load-dir`.
+
+Refinement: every 5 steps from step 40 (splatfacto pauses it for num_train_data + refine_every = 40 steps after the
+step-0 opacity reset), so the only refine before the add is at step 40."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+import torch
+from conftest import run_training, short_config
+
+from hpgs_ns.selection.after_add import AfterAddConfig, AfterAddError, rewind_schedules
+
+ROUND, STOP, TOTAL, REWIND, WINDOW = 50, 56, 80, 30, 20
+
+
+def after_add_config(scene: Path, out: Path, steps: int):
+    cfg = short_config(scene, out, steps=TOTAL, select_at=(ROUND,), rounds=1, selector="random")
+    cfg.max_num_iterations = steps
+    model = cfg.pipeline.model
+    model.warmup_length, model.refine_every, model.reset_alpha_every, model.stop_split_at = 5, 5, 100, 45
+    cfg.pipeline.selection.after_add = AfterAddConfig(refine_steps=WINDOW, reset_opacity=True, lr_rewind=REWIND)
+    return cfg
+
+
+def train_with_spy(cfg, seen: dict):
+    from nerfstudio.engine.trainer import Trainer
+
+    original = Trainer.train_iteration
+
+    def spy(self, step):
+        model = self.pipeline.model
+        seen[step] = {"num_points": model.num_points, "lr": self.optimizers.optimizers["means"].param_groups[0]["lr"],
+                      "position": self.optimizers.schedulers["means"].last_epoch,
+                      "max_opacity": float(model.gauss_params["opacities"].max()),
+                      "refine_stop": model.strategy.refine_stop_iter}
+        return original(self, step)
+
+    Trainer.train_iteration = spy
+    try:
+        return run_training(cfg)
+    finally:
+        Trainer.train_iteration = original
+
+
+@pytest.fixture(scope="module")
+def run(tiny_scene, tmp_path_factory):
+    seen: dict = {}
+    torch.manual_seed(0)
+    first = train_with_spy(after_add_config(tiny_scene, tmp_path_factory.mktemp("first"), STOP), seen)
+    copy = tmp_path_factory.mktemp("copy") / "run"
+    shutil.copytree(first.base_dir, copy)
+    cfg = after_add_config(tiny_scene, tmp_path_factory.mktemp("resumed"), TOTAL)
+    cfg.load_dir = copy / "nerfstudio_models"
+    resumed = train_with_spy(cfg, seen)
+    return {"seen": seen, "first": first, "resumed": resumed}
+
+
+def test_refinement_stops_at_stop_split_at_then_runs_again_after_the_add(run):
+    seen = run["seen"]
+    counts = [seen[s]["num_points"] for s in range(41, ROUND + 1)]
+    assert len(set(counts)) == 1  # no refine between stop-split-at and the add
+    assert seen[ROUND - 1]["refine_stop"] == 45 and seen[ROUND]["refine_stop"] == ROUND + WINDOW
+    # refines at 55 (before the resume), 60 and 65 (after it): the count moves, then stays after the window
+    assert len({seen[s]["num_points"] for s in range(ROUND + 1, ROUND + WINDOW + 1)}) > 1
+    assert len({seen[s]["num_points"] for s in range(ROUND + WINDOW + 1, TOTAL)}) == 1
+
+
+def test_opacities_are_reset_at_the_add(run):
+    seen = run["seen"]
+    cap = torch.logit(torch.tensor(0.1 * 2.0)).item()  # splatfacto's cull_alpha_thresh 0.1, reset to twice it
+    assert seen[ROUND - 1]["max_opacity"] > cap + 0.5
+    assert seen[ROUND]["max_opacity"] == pytest.approx(cap, abs=1e-5)
+
+
+def test_the_means_learning_rate_is_rewound_and_the_rewind_survives_a_resume(run):
+    seen = run["seen"]
+    assert seen[ROUND - 1]["position"] == ROUND - 1 and seen[ROUND]["position"] == ROUND - REWIND
+    assert seen[ROUND]["lr"] == pytest.approx(seen[ROUND - REWIND]["lr"], rel=1e-9)
+    assert seen[STOP]["position"] == STOP - REWIND  # first step after the resume: the rewound clock went on
+    assert seen[STOP]["refine_stop"] == ROUND + WINDOW
+
+
+def test_the_round_log_records_what_was_done(run):
+    log = json.loads((Path(run["resumed"].base_dir) / "selected_views.json").read_text())
+    done = log["rounds"][0]["after_add"]
+    assert done["refine_until"] == ROUND + WINDOW and done["lr_position.means"] == ROUND - REWIND
+    assert done["opacity_reset"] > 0
+
+
+def test_rewind_never_goes_before_the_start_and_bad_values_are_one_line():
+    params = [torch.nn.Parameter(torch.zeros(1))]
+    optimizer = torch.optim.Adam(params, lr=1.0)
+    scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda step: 0.5 ** step)
+    for _ in range(3):
+        scheduler.step()
+    assert rewind_schedules({"means": scheduler}, 2) == {"means": 1} and optimizer.param_groups[0]["lr"] == 0.5
+    assert rewind_schedules({"means": scheduler}, 10) == {"means": 0} and optimizer.param_groups[0]["lr"] == 1.0
+    with pytest.raises(AfterAddError, match="refine-steps -1 must be a whole number"):
+        AfterAddConfig(refine_steps=-1)
+    assert AfterAddConfig().describe() == "off" and not AfterAddConfig().enabled
