@@ -17,7 +17,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import List, Literal, Optional
 
-import torch
 from rich.console import Console
 
 from hpgs_ns.errors import UserError
@@ -52,6 +51,8 @@ class Demo:
     """Rasterizer (auto: gsplat when CUDA is available)."""
 
     def main(self) -> None:
+        import torch  # here, not at module level: `hpgs demo --help` does not need it
+
         from hpgs_ns.offline_weights import LPIPS_NETS, lpips_weights_path
         from hpgs_ns.scenes.synthetic import make_scene
 

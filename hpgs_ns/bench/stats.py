@@ -39,7 +39,6 @@ from dataclasses import dataclass
 from typing import Any, Dict, Iterable, List, Mapping, Protocol, Sequence, Tuple
 
 import numpy as np
-from scipy import stats as scipy_stats
 
 from hpgs_ns.bench.names import REFERENCES
 
@@ -125,6 +124,8 @@ def scene_summaries(gains: Mapping[str, Mapping[int, float]], level: float = 0.9
         if g.size < 2:
             lo = hi = math.nan
         else:
+            from scipy import stats as scipy_stats  # here: importing scipy.stats takes ~1 s, `hpgs bench --help` none
+
             half = float(scipy_stats.t.ppf((1 + level) / 2, g.size - 1)) * float(g.std(ddof=1)) / math.sqrt(g.size)
             lo, hi = mean - half, mean + half
         out.append(SceneSummary(scene, int(g.size), mean, lo, hi))

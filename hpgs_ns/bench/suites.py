@@ -17,8 +17,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import List, Optional, Sequence, Tuple
 
-from hpgs_ns.dataparser import DATAPARSERS, scene_dataparser
 from hpgs_ns.errors import UserError
+
+# hpgs_ns.dataparser (nerfstudio) is imported where used: `hpgs bench --help` imports this module.
 
 try:
     import tomllib
@@ -58,6 +59,8 @@ class Scene:
 
 def scene_from_folder(path: Path) -> Scene:
     """A scene given by its folder (`hpgs bench --scenes`): named after the folder, its parser found from it."""
+    from hpgs_ns.dataparser import scene_dataparser
+
     path = Path(path)
     if str(path).startswith(SYNTHETIC):
         return Scene(str(path).replace(":", "-"), path, "mipnerf360")
@@ -84,6 +87,8 @@ def shipped_suites() -> List[str]:
 def load_suite(suite: str, data_root: Optional[Path] = None, only: Sequence[str] = ()) -> List[Scene]:
     """The scenes of a suite (those named in `only`, if any), their paths resolved against `data_root` (checked to
     exist, synthetic ones aside)."""
+    from hpgs_ns.dataparser import DATAPARSERS, scene_dataparser
+
     path = suite_file(suite)
     try:
         spec = tomllib.loads(path.read_text())

@@ -14,19 +14,20 @@ import shutil
 import subprocess
 from dataclasses import dataclass
 from pathlib import Path
-from typing import List, Literal, Optional
+from typing import TYPE_CHECKING, List, Literal, Optional
 
 import numpy as np
-import torch
 import yaml
 from PIL import Image
 from rich.console import Console
 from rich.progress import track
 
 from hpgs_ns.atomic_write import write_csv_atomic
-from hpgs_ns.dataparser import scene_dataparser
 from hpgs_ns.errors import UserError
 from hpgs_ns.ns_train import ns_train_command
+
+if TYPE_CHECKING:  # torch and nerfstudio are imported where used: `hpgs collect --help` imports this module
+    import torch
 
 CONSOLE = Console(stderr=True)
 
@@ -60,6 +61,8 @@ class Collect:
     """Extra `ns-train hpgs` arguments (quoted), e.g. schedule options for short runs."""
 
     def main(self) -> None:
+        from hpgs_ns.dataparser import scene_dataparser
+
         if not self.data.is_dir():
             raise UserError(f"hpgs collect: scene folder {self.data} does not exist; pass --data PATH")
         run_root = self.out / "run"
@@ -96,6 +99,8 @@ def ground_truth_images(run_dir: Path) -> dict:
 
 def score_snapshots(run_dir: Path, render_dir: Path, save_short_side: Optional[int] = None) -> List[dict]:
     """Copy every snapshot render to `render_dir` and measure it against its photo."""
+    import torch
+
     from hpgs_ns.metrics import lpips, psnr, ssim
 
     photos = ground_truth_images(run_dir)
@@ -125,6 +130,8 @@ def score_snapshots(run_dir: Path, render_dir: Path, save_short_side: Optional[i
 
 def load_rgb(path: Path, size: Optional[tuple] = None) -> torch.Tensor:
     """[H, W, 3] float in [0, 1]; resized to `size` (W, H) if given."""
+    import torch
+
     with Image.open(path) as im:
         im = im.convert("RGB")
         if size is not None and im.size != tuple(size):

@@ -6,46 +6,52 @@ import json
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Dict, List, Sequence, Tuple
+from typing import TYPE_CHECKING, Dict, List, Sequence, Tuple
 
-import torch
 from rich.console import Console
 from rich.progress import track
 
 from hpgs_ns.errors import UserError
-from hpgs_ns.preference.model import CheckpointError, PreferenceModel
 from hpgs_ns.preference.pairs import Pair, PairsError, load_image, read_usable_pairs
+from hpgs_ns.preference.recipe import CheckpointError
+
+if TYPE_CHECKING:  # torch is imported where used: `hpgs eval-pref --help` imports this module
+    import torch
+
+    from hpgs_ns.preference.model import PreferenceModel
 
 CONSOLE = Console(stderr=True)
 
 
-@torch.no_grad()
 def raw_features_of(model: PreferenceModel, paths: Sequence[Path], batch_size: int = 16,
                     progress: bool = True) -> torch.Tensor:
     """Pooled backbone features (before standardisation) of image files: N paths -> [N, F] on the CPU.
 
     Images are preprocessed one by one, then batched by size (renders of one scene share it)."""
-    device = model.feature_mean.device
-    out = torch.empty(len(paths), model.feature_dim)
-    pending: Dict[Tuple[int, int], List[Tuple[int, torch.Tensor]]] = {}
+    import torch
 
-    def flush(key: Tuple[int, int]) -> None:
-        items = pending.pop(key)
-        batch = torch.stack([x for _, x in items]).to(device)
-        out[[i for i, _ in items]] = model.backbone(batch).float().cpu()
+    with torch.no_grad():
+        device = model.feature_mean.device
+        out = torch.empty(len(paths), model.feature_dim)
+        pending: Dict[Tuple[int, int], List[Tuple[int, torch.Tensor]]] = {}
 
-    steps = enumerate(paths)
-    if progress and len(paths) > batch_size and CONSOLE.is_terminal:  # no stray blank lines in logs
-        steps = track(steps, total=len(paths), description="features", console=CONSOLE, transient=True)
-    for i, path in steps:
-        x = model.preprocess(load_image(path)[None])[0]
-        key = tuple(x.shape[-2:])
-        pending.setdefault(key, []).append((i, x))
-        if len(pending[key]) == batch_size:
+        def flush(key: Tuple[int, int]) -> None:
+            items = pending.pop(key)
+            batch = torch.stack([x for _, x in items]).to(device)
+            out[[i for i, _ in items]] = model.backbone(batch).float().cpu()
+
+        steps = enumerate(paths)
+        if progress and len(paths) > batch_size and CONSOLE.is_terminal:  # no stray blank lines in logs
+            steps = track(steps, total=len(paths), description="features", console=CONSOLE, transient=True)
+        for i, path in steps:
+            x = model.preprocess(load_image(path)[None])[0]
+            key = tuple(x.shape[-2:])
+            pending.setdefault(key, []).append((i, x))
+            if len(pending[key]) == batch_size:
+                flush(key)
+        for key in list(pending):
             flush(key)
-    for key in list(pending):
-        flush(key)
-    return out
+        return out
 
 
 def pair_accuracy_from_scores(scores: torch.Tensor, index: torch.Tensor, labels: torch.Tensor) -> float:
@@ -53,6 +59,8 @@ def pair_accuracy_from_scores(scores: torch.Tensor, index: torch.Tensor, labels:
 
     scores: [N] per image; index: [P, 2] image indices (Image_1, Image_2); labels: [P], 1 = Image_1 worse.
     Exact ties count as half right."""
+    import torch
+
     if len(labels) == 0:
         return float("nan")
     diff = scores[index[:, 0]] - scores[index[:, 1]]
@@ -62,6 +70,8 @@ def pair_accuracy_from_scores(scores: torch.Tensor, index: torch.Tensor, labels:
 
 def index_pairs(pairs: Sequence[Pair]) -> Tuple[List[Path], torch.Tensor, torch.Tensor]:
     """(distinct images, [P, 2] indices into them, [P] labels) for labelled pairs."""
+    import torch
+
     images = list(dict.fromkeys(p for pair in pairs for p in (pair.image_1, pair.image_2)))
     pos = {p: i for i, p in enumerate(images)}
     index = torch.tensor([[pos[p.image_1], pos[p.image_2]] for p in pairs], dtype=torch.long).reshape(-1, 2)
@@ -69,14 +79,16 @@ def index_pairs(pairs: Sequence[Pair]) -> Tuple[List[Path], torch.Tensor, torch.
     return images, index, labels
 
 
-@torch.no_grad()
 def evaluate_pairs(model: PreferenceModel, pairs: Sequence[Pair], batch_size: int = 16,
                    progress: bool = True) -> Dict[str, float]:
     """{'accuracy', 'pairs', 'images'} of `model` on labelled, unskipped `pairs`."""
+    import torch
+
     pairs = [p for p in pairs if p.usable]
     images, index, labels = index_pairs(pairs)
-    scores = model.score_features(model.standardise(raw_features_of(model, images, batch_size, progress).to(
-        model.feature_mean.device))).cpu() if images else torch.empty(0)
+    with torch.no_grad():
+        scores = model.score_features(model.standardise(raw_features_of(model, images, batch_size, progress).to(
+            model.feature_mean.device))).cpu() if images else torch.empty(0)
     return {"accuracy": pair_accuracy_from_scores(scores, index, labels), "pairs": len(pairs), "images": len(images)}
 
 
@@ -96,6 +108,8 @@ class EvalPref:
     """Torch device."""
 
     def main(self) -> None:
+        from hpgs_ns.preference.model import PreferenceModel
+
         try:
             model = PreferenceModel.load(self.model, self.device)
             pairs = read_usable_pairs(self.pairs)

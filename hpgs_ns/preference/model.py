@@ -30,7 +30,7 @@ the recipe and provenance; frozen pretrained backbones are rebuilt from their pa
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Callable, Dict, List, Literal, Optional, Sequence, get_args
+from typing import Any, Callable, Dict, List, Optional, Sequence, get_args
 
 import torch
 import torch.nn.functional as F
@@ -39,21 +39,15 @@ from torch import nn
 from hpgs_ns import offline_weights as ow
 from hpgs_ns.atomic_write import atomic_path
 from hpgs_ns.errors import UserError
+from hpgs_ns.preference.recipe import BackboneName, CheckpointError, FeatureTransform
 
 FORMAT = "hpgs-preference-model"
 VERSION = 1
-# Literals so that tyro's choices (`hpgs train-pref --backbone`) and the checks here come from one list
-BackboneName = Literal["alexnet", "vgg16", "efficientnet-lite0", "resnet34", "alexnet+vgg16"]
-FeatureTransform = Literal["none", "sqrt-l2"]
 BACKBONES = get_args(BackboneName)
 FEATURE_TRANSFORMS = get_args(FeatureTransform)
 LPIPS_TRUNKS = {"alexnet": "alex", "vgg16": "vgg"}  # our name -> lpips' name; "+" joins them
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
-
-
-class CheckpointError(UserError, ValueError):
-    """A preference-model checkpoint is missing, corrupt or does not match this code (one-line message)."""
 
 
 class RecipeError(UserError, ValueError):

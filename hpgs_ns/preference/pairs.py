@@ -12,12 +12,14 @@ import os
 import random
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterable, List, Optional, Sequence, Set, Tuple
+from typing import TYPE_CHECKING, Iterable, List, Optional, Sequence, Set, Tuple
 
 import numpy as np
-import torch
 
 from hpgs_ns.errors import UserError
+
+if TYPE_CHECKING:  # imported in load_image: `hpgs label --help` and `hpgs eval-pref --help` import this module
+    import torch
 
 COLUMNS = ("Image_1", "Image_2", "Human Preference")
 SKIPPED = "Skipped"
@@ -110,6 +112,7 @@ def read_usable_pairs(csv_paths: Iterable[Path], check_images: bool = True) -> L
 
 def load_image(path: Path) -> torch.Tensor:
     """An image file as [3, H, W] float in [0, 1]; PairsError if missing or unreadable."""
+    import torch
     from PIL import Image, UnidentifiedImageError
 
     try:

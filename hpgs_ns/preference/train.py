@@ -15,33 +15,30 @@ import hashlib
 import sys
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Dict, List, Literal, Optional, Sequence, Tuple
+from typing import TYPE_CHECKING, Dict, List, Literal, Optional, Sequence, Tuple
 
-import torch
 import tyro
 from rich.console import Console
 from rich.progress import track
 from typing_extensions import Annotated
 
 from hpgs_ns.errors import UserError
-from hpgs_ns.offline_weights import MissingWeightsError
 from hpgs_ns.preference.evaluate import evaluate_pairs, index_pairs, raw_features_of
-from hpgs_ns.preference.model import (
-    BackboneName,
-    BackboneUnavailable,
-    FeatureTransform,
-    PreferenceModel,
-    RecipeError,
-    bt_loss,
-    check_recipe,
-)
 from hpgs_ns.preference.pairs import Pair, PairsError, image_disjoint_split, images_of, load_image, read_usable_pairs
+from hpgs_ns.preference.recipe import BackboneName, FeatureTransform
+
+if TYPE_CHECKING:  # torch and the model are imported where used: `hpgs train-pref --help` imports this module
+    import torch
+
+    from hpgs_ns.preference.model import PreferenceModel
 
 CONSOLE = Console(stderr=True)
 
 
 def set_feature_statistics(model: PreferenceModel, raw: torch.Tensor) -> None:
     """Standardise features with the training images' mean/std ([N, F]); constant dimensions keep std 1."""
+    import torch
+
     std = raw.std(0, correction=0)
     model.feature_mean.copy_(raw.mean(0))
     model.feature_std.copy_(torch.where(std > 1e-6, std, torch.ones_like(std)))
@@ -55,6 +52,8 @@ def fit_head(model: PreferenceModel, raw: torch.Tensor, index: torch.Tensor, lab
     worse). Minimises mean BCE-with-logits(s_1 - s_2) + l2 * |w|^2 over standardised features with L-BFGS
     (convex, so deterministic). The head's bias cancels in s_1 - s_2 and stays 0.
     """
+    import torch
+
     set_feature_statistics(model, raw)
     z = model.standardise(raw.to(model.feature_mean.device)).double()
     index, y = index.to(z.device), labels.to(z.device).double()
@@ -80,6 +79,8 @@ def fit_head_and_score(model: PreferenceModel, raw: torch.Tensor, index: torch.T
                        l2: float = 0.1) -> torch.Tensor:
     """Fit the head on the pairs `index` ([P, 2] into `raw`, [N, F] features of every image) and return every
     image's score ([N]). Only the images in those pairs set the feature statistics (held-out images stay unseen)."""
+    import torch
+
     used = torch.unique(index)
     remap = torch.full((len(raw),), -1, dtype=torch.long)
     remap[used] = torch.arange(len(used))
@@ -93,6 +94,8 @@ def paired_augment(a: torch.Tensor, b: torch.Tensor, generator: torch.Generator,
     """The same random horizontal flip and crop (relative box, side fraction in [min_scale, 1]) on both images.
 
     a, b: [3, H, W] (sizes may differ; the box is relative) -> the two crops."""
+    import torch
+
     r = torch.rand(4, generator=generator).tolist()
     scale = min_scale + (1 - min_scale) * r[0]
 
@@ -108,6 +111,8 @@ def paired_augment(a: torch.Tensor, b: torch.Tensor, generator: torch.Generator,
 
 def _pair_scores(model: PreferenceModel, a: torch.Tensor, b: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
     """Scores of two [3, H, W] images, in one forward when their preprocessed sizes match."""
+    import torch
+
     xa, xb = model.preprocess(a[None]), model.preprocess(b[None])
     if xa.shape == xb.shape:
         s = model.score(torch.cat([xa, xb]))
@@ -120,6 +125,10 @@ def train_minibatch(model: PreferenceModel, pairs: Sequence[Pair], finetune: boo
     """Adam on BT loss over image pairs (optionally augmented, optionally training the backbone).
 
     Returns the mean loss of each epoch."""
+    import torch
+
+    from hpgs_ns.preference.model import bt_loss
+
     device = model.feature_mean.device
     generator = torch.Generator().manual_seed(seed)
     model.requires_grad_(False)
@@ -212,6 +221,10 @@ class TrainPref:
     def fit(self, train: Sequence[Pair]) -> Tuple[PreferenceModel, float, List[float]]:
         """Train a fresh model on `train` pairs: head fit on cached features, then minibatch epochs if the
         backbone trains or augmentation is on. Returns (model, head-fit loss, epoch losses)."""
+        import torch
+
+        from hpgs_ns.preference.model import PreferenceModel
+
         torch.manual_seed(self.seed)
         augment = self.trains_backbone if self.augment is None else self.augment
         model = PreferenceModel(self.backbone, self.pretrained == "imagenet", self.input_size,
@@ -228,6 +241,8 @@ class TrainPref:
 
     def run(self) -> PreferenceModel:
         """Split, train and return the model (with `meta` filled); `main` also saves it."""
+        from hpgs_ns.preference.model import check_recipe
+
         check_recipe(self.backbone, self.feature_transform)  # before reading images: a wrong pairing fails at once
         finetune = self.trains_backbone
         if not self.pairs:  # tyro lets a repeatable option be left out
@@ -262,6 +277,9 @@ class TrainPref:
         return model
 
     def main(self) -> None:
+        from hpgs_ns.offline_weights import MissingWeightsError
+        from hpgs_ns.preference.model import BackboneUnavailable, RecipeError
+
         try:
             model = self.run()
         except (PairsError, BackboneUnavailable, RecipeError, MissingWeightsError) as err:

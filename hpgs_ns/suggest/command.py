@@ -15,14 +15,17 @@ import copy
 import math
 from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import Dict, List, Optional, Tuple
+from typing import TYPE_CHECKING, Dict, List, Optional, Tuple
 
-import torch
 from rich.console import Console
 
 from hpgs_ns.atomic_write import write_json_atomic
 from hpgs_ns.errors import UserError
-from hpgs_ns.suggest import candidates as cand
+
+if TYPE_CHECKING:  # torch and nerfstudio are imported where used: `hpgs suggest --help` imports this module
+    import torch
+
+    from hpgs_ns.suggest import candidates as cand
 
 CONSOLE = Console(stderr=True)
 
@@ -113,6 +116,8 @@ def load_run(config_path: Path) -> Run:
 
 
 def candidate_poses(run: Run, args: Suggest) -> Tuple[torch.Tensor, List[float], cand.Layout]:
+    from hpgs_ns.suggest import candidates as cand
+
     captured = run.pipeline.datamanager.train_dataset.cameras.camera_to_worlds
     lay = cand.layout(captured)
     if args.candidates == "orbit":
@@ -125,6 +130,7 @@ def candidate_poses(run: Run, args: Suggest) -> Tuple[torch.Tensor, List[float],
 
 def candidate_cameras(run: Run, c2w: torch.Tensor, fovs: List[float]):
     """Cameras at `c2w` with the captured cameras' intrinsics (a camera path's own field of view where given)."""
+    import torch
     from nerfstudio.cameras.cameras import Cameras, CameraType
 
     cams = run.pipeline.datamanager.train_dataset.cameras
@@ -138,14 +144,15 @@ def candidate_cameras(run: Run, c2w: torch.Tensor, fovs: List[float]):
                    camera_type=CameraType.PERSPECTIVE)
 
 
-@torch.no_grad()
 def blocked(model, cameras, lay: cand.Layout, clearance: float, short_side: int = 48) -> torch.Tensor:
     """[N] bool: the splat's depth in the middle of the view is nearer than `clearance` x the distance to the
     centre (inside geometry, or behind a wall)."""
+    import torch
+
     out = []
     small = copy.deepcopy(cameras)
     small.rescale_output_resolution(short_side / float(min(int(cameras.width[0]), int(cameras.height[0]))))
-    with model.eval_mode():
+    with torch.no_grad(), model.eval_mode():
         for i in range(small.shape[0]):
             result = model.get_outputs_for_camera(small[i : i + 1].to(model.device))
             depth, alpha = result["depth"][..., 0], result["accumulation"][..., 0]
@@ -159,8 +166,11 @@ def blocked(model, cameras, lay: cand.Layout, clearance: float, short_side: int 
 
 def suggest(run: Run, args: Suggest) -> Dict:
     """Generate, filter and score candidate poses; write the files; return what suggested_views.json holds."""
+    import torch
+
     from hpgs_ns.selectors.base import SelectionContext, check_selection
     from hpgs_ns.selectors.registry import selector_config
+    from hpgs_ns.suggest import candidates as cand
 
     if args.num < 1:
         raise SuggestError("--num must be at least 1")
@@ -206,6 +216,7 @@ def suggest(run: Run, args: Suggest) -> Dict:
 
 def _concat(a, b):
     """Two Cameras of one kind in one (nerfstudio's Cameras has no concatenation)."""
+    import torch
     from nerfstudio.cameras.cameras import Cameras
 
     cat = lambda x, y: torch.cat([x.reshape(len(x), -1), y.reshape(len(y), -1)])  # noqa: E731
@@ -217,6 +228,8 @@ def _concat(a, b):
 
 
 def write_outputs(run: Run, args: Suggest, poses, cameras, picked, scores, pool, dropped, lay, name: str) -> Dict:
+    import torch
+
     from hpgs_ns.suggest.figures import contact_sheet, top_down_map
 
     dm = run.pipeline.datamanager
