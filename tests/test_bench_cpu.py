@@ -4,17 +4,21 @@ tables' numbers for known inputs."""
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
+import shlex
+import shutil
 from pathlib import Path
 
 import pytest
 from test_bench_results import make_result
 
+from hpgs_ns.bench.names import FINAL_SET
 from hpgs_ns.bench.protocols import fisherrf_schedule
-from hpgs_ns.bench.report import device_counts, load_results, markdown_table, work_table
+from hpgs_ns.bench.report import device_counts, load_results, markdown_table, schedule_cost_table, work_table, write_report
 from hpgs_ns.bench.report.plots import camera_centres, camera_map
-from hpgs_ns.bench.results import RunResult
-from hpgs_ns.bench.runs import Bench, resolve_scenes, summed_work, train_args
+from hpgs_ns.bench.results import RunResult, SourceRun, load_final_sets
+from hpgs_ns.bench.runs import Bench, Job, resolve_scenes, run_settings, summed_work, train_args
 from hpgs_ns.bench.suites import scene_from_folder
 from hpgs_ns.errors import UserError
 from hpgs_ns.ns_train import SELECTION_PREFIX
@@ -25,13 +29,20 @@ def test_fisherrf_schedule_is_train_size_times_100():
     assert fisherrf_schedule()[-1] == 18400 and len(fisherrf_schedule()) == 16
 
 
-def test_tiny_bench_writes_results_table_plots_and_resumes(tiny_scene, tmp_path):
+@pytest.fixture(scope="module")
+def tiny_bench(tiny_scene, tmp_path_factory) -> Bench:
+    """One finished sweep on the tiny scene: `farthest`, the `initial` and `all` rows, and farthest's final-set."""
     bench = Bench(
-        scenes=[tiny_scene], out=tmp_path / "bench", selectors=["farthest"], seeds=[0], protocols=["hpgs"],
-        step_scale=0.002, initial_views=6, rasterizer="cpu",
+        scenes=[tiny_scene], out=tmp_path_factory.mktemp("tiny") / "bench", selectors=["farthest"], seeds=[0],
+        protocols=["hpgs"], step_scale=0.002, initial_views=6, rasterizer="cpu", final_set="first-seed",
         extra_args="--pipeline.model.num-downscales 0 --pipeline.model.warmup-length 1000",
     )
     bench.main()
+    return bench
+
+
+def test_tiny_bench_writes_results_table_plots_and_resumes(tiny_bench, tiny_scene):
+    bench = tiny_bench
     rows = load_results(bench.out)
     assert sorted(r.selector for r in rows) == ["all", "farthest", "initial"]
     for r in rows:
@@ -56,7 +67,7 @@ def test_tiny_bench_writes_results_table_plots_and_resumes(tiny_scene, tmp_path)
     table = (bench.out / "table.md").read_text()
     assert (f"| {tiny_scene.name} | hpgs | farthest | 1 | 13 | {farthest.test.psnr:.2f} | {farthest.test.ssim:.3f} | "
             f"{farthest.test.lpips:.3f} | cpu |") in table
-    lines = [line.split(" | ")[2] for line in table.splitlines()[2:]]
+    lines = [line.split(" | ")[2] for line in table.split("\n\n")[0].splitlines()[2:]]
     assert lines == ["farthest", "initial", "all"]  # selectors first, then the reference rows
     assert (bench.out / f"{tiny_scene.name}-hpgs.png").stat().st_size > 10_000
     assert (bench.out / f"{tiny_scene.name}-hpgs-cameras.png").stat().st_size > 10_000
@@ -71,6 +82,68 @@ def test_tiny_bench_writes_results_table_plots_and_resumes(tiny_scene, tmp_path)
     with pytest.raises(UserError, match=r"seed0.json was made with other settings \(extra_args\); pass another --out"):
         changed.main()
     assert {p: p.stat().st_mtime for p in bench.out.glob("*/*/*/seed*.json")} == before
+
+
+def words_after(command: str, flag: str) -> list:
+    """The words after `flag` in a recorded command, up to the next option or subcommand."""
+    words = shlex.split(command)
+    rest = words[words.index(flag) + 1:]
+    return rest[: next((i for i, w in enumerate(rest) if w.startswith("--") or w == "mipnerf360"), len(rest))]
+
+
+def test_final_set_trains_the_runs_final_views_from_step_0_and_resumes(tiny_bench, tiny_scene):
+    folder = tiny_bench.out / tiny_scene.name / "hpgs"
+    source = json.loads((folder / "farthest" / "seed0.json").read_text())
+    final_path = folder / "farthest" / "final-set" / "seed0.json"
+    final = json.loads(final_path.read_text())
+    views = sorted(source["initial_views"] + source["chosen_views"])
+    assert len(views) == 13 == source["num_views_final"]
+    # the command: exactly the run's final views as initial views, no rounds, the run's seed, steps and settings
+    command = final["provenance"]["command"]
+    assert words_after(command, "--pipeline.datamanager.initial-view-names") == views
+    assert words_after(command, f"--{SELECTION_PREFIX}max-rounds") == ["0"]
+    assert "--pipeline.datamanager.initial-views" not in shlex.split(command)
+    for flag in ("--machine.seed", "--pipeline.datamanager.seed", "--max-num-iterations", "--data",
+                 "--pipeline.model.rasterizer", "--pipeline.model.warmup-length", f"--{SELECTION_PREFIX}select-every"):
+        assert words_after(command, flag) == words_after(source["provenance"]["command"], flag), flag
+    # the result: trained those views from step 0, and names the run it belongs to
+    assert (final["selector"], final["seed"], final["steps"]) == ("final-set", 0, 30)
+    assert final["final_set_of"] == {"selector": "farthest", "seed": 0, "repeat": 0, "views": views}
+    assert sorted(final["initial_views"]) == views and final["chosen_views"] == [] and final["psnr_per_round"] == []
+    assert final["num_views_final"] == 13 and final["provenance"]["settings"] == source["provenance"]["settings"] | {
+        "code": final["provenance"]["settings"]["code"], "selector_options": None, "preference_model": None}
+    assert "final-set" not in {r.selector for r in load_results(tiny_bench.out)}  # not a row of the other tables
+
+    # resumed: the final-set is skipped like a run
+    before = final_path.stat().st_mtime_ns
+    tiny_bench.main()
+    assert final_path.stat().st_mtime_ns == before and tiny_bench.final_set_todo() == []
+
+    # the schedule cost in table.md: final-set - run, beside initial and all, from the JSONs
+    psnr = {name: json.loads((folder / name / "seed0.json").read_text())["test"]["psnr"] for name in ("initial", "all")}
+    run_psnr, final_psnr = source["test"]["psnr"], final["test"]["psnr"]
+    table = (tiny_bench.out / "table.md").read_text()
+    assert (f"| {tiny_scene.name} | hpgs | farthest | 1 | 13 | {run_psnr:.2f} | {final_psnr:.2f} | "
+            f"{final_psnr - run_psnr:+.2f} | {psnr['initial']:.2f} | {psnr['all']:.2f} |") in table
+    assert f"| hpgs | farthest | 1 | 1 | {final_psnr - run_psnr:+.2f} | n/a (1 scene) |" in table
+
+    # the run re-run with other views: its final-set is stale, left out of the report and redone by the next sweep
+    copy = tiny_bench.out.parent / "stale"
+    shutil.copytree(tiny_bench.out, copy, ignore=shutil.ignore_patterns("_runs", "_scenes"))
+    other = next(f"images/{p.name}" for p in sorted((tiny_scene / "images").glob("*.png")) if f"images/{p.name}" not in views
+                 and p.name not in {Path(t["name"]).name for t in source["test_views"]})
+    edited = {**source, "chosen_views": source["chosen_views"][:-1] + [other]}
+    (copy / tiny_scene.name / "hpgs" / "farthest" / "seed0.json").write_text(json.dumps(edited))
+    stale = dataclasses.replace(tiny_bench, out=copy)
+    [job] = stale.final_set_todo()
+    assert (job.name, job.source, job.seed) == ("final-set", "farthest", 0)
+    assert list(job.views) == sorted(edited["initial_views"] + edited["chosen_views"]) != views
+    assert job.result_path(copy) == copy / tiny_scene.name / "hpgs" / "farthest" / "final-set" / "seed0.json"
+    assert words_after(shlex.join(train_args(stale, job, copy / "_runs")), "--pipeline.datamanager.initial-view-names") == list(job.views)
+    write_report(copy)
+    assert "| farthest | 1 | 13 |" not in (copy / "table.md").read_text().split("Schedule cost")[1]
+    assert "1 final-set result(s) left out: their run has other views now" in (copy / "table.md").read_text()
+    assert dataclasses.replace(stale, final_set="none").final_set_todo() == []
 
 
 def test_selection_options_and_datamanager_options_go_to_their_groups(tiny_scene, tmp_path):
@@ -169,3 +242,95 @@ def test_a_results_folder_reads_back_as_written(tmp_path):
     back = load_results(tmp_path)
     assert [(r.selector, r.seed) for r in back] == [("fisher", 0), ("fisher", 1), ("random", 0), ("random", 1)]
     assert all(isinstance(r, RunResult) for r in back) and sorted(back, key=lambda r: (r.selector, r.seed)) == back
+
+
+def test_a_final_set_command_names_its_views_and_runs_no_rounds(tiny_scene, tmp_path):
+    bench = Bench(scenes=[tiny_scene], out=tmp_path, selectors=["fisher"], seeds=[3], protocols=["fisherrf"],
+                  references=False, log_candidate_scores=True, stop_when_gain_below=0.1)
+    [run] = bench.jobs()
+    job = Job(run.scene, run.protocol, FINAL_SET, 3, source="fisher", views=("images/0001.png", "images/0005.png"))
+    args = train_args(bench, job, tmp_path / "_runs")
+    assert words_after(shlex.join(args), "--pipeline.datamanager.initial-view-names") == ["images/0001.png", "images/0005.png"]
+    assert words_after(shlex.join(args), f"--{SELECTION_PREFIX}max-rounds") == ["0"]
+    assert words_after(shlex.join(args), f"--{SELECTION_PREFIX}selector") == ["random"]
+    assert words_after(shlex.join(args), "--machine.seed") == ["3"]
+    for absent in ("--pipeline.datamanager.initial-views", f"--{SELECTION_PREFIX}log-candidate-scores",
+                   f"--{SELECTION_PREFIX}stop-when-gain-below"):
+        assert absent not in args
+    assert job.result_path(tmp_path) == tmp_path / tiny_scene.name / "fisherrf-stop0.1" / "fisher" / "final-set" / "seed3.json"
+    assert run_settings(bench, job)["selector_options"] is None
+
+    # which finished runs get one: --final-set first-seed takes the first of --seeds, repeat 0; all takes every run
+    views = {"initial_views": ["images/0001.png"], "chosen_views": ["images/0009.png"], "num_views_final": 2}
+    bench = Bench(scenes=[tiny_scene], out=tmp_path, selectors=["random", "fisher"], seeds=[2, 5], repeats=2,
+                  protocols=["hpgs"], final_set="first-seed")
+    for j in bench.jobs():
+        if (j.name, j.seed, j.repeat) != ("fisher", 5, 1):  # not finished yet: no final-set
+            make_result(j.scene.name, "hpgs", j.name, j.seed, repeat=j.repeat, **views).to_json(j.result_path(tmp_path))
+    made = lambda b: sorted((j.source, j.seed, j.repeat, j.views) for j in b.final_set_jobs())  # noqa: E731
+    both = ("images/0001.png", "images/0009.png")
+    assert made(bench) == [("fisher", 2, 0, both), ("random", 2, 0, both)]
+    assert len(made(dataclasses.replace(bench, final_set="all"))) == 7 and made(dataclasses.replace(bench, final_set="none")) == []
+    old = make_result(tiny_scene.name, "hpgs", "random", 2, num_views_final=2)  # a result that names no views
+    old.to_json(bench.jobs()[0].result_path(tmp_path))
+    assert made(bench) == [("fisher", 2, 0, both)]
+
+
+def schedule_rows():
+    """Hand-made runs, references and final-sets with known schedule costs (see the test below)."""
+    views = {"initial_views": [f"v{i}" for i in range(6)], "chosen_views": ["v6", "v7"], "num_views_final": 8}
+    runs, finals = [], []
+
+    def pair(scene, sel, seed, run, final, repeat=0, smoke=False, final_views=None):
+        runs.append(make_result(scene, "hpgs", sel, seed, run, repeat=repeat, smoke=smoke, **views))
+        source = SourceRun(sel, seed, repeat, final_views or [f"v{i}" for i in range(8)])
+        finals.append(make_result(scene, "hpgs", "final-set", seed, final, repeat=repeat, smoke=smoke,
+                                  initial_views=source.views, num_views_final=8, final_set_of=source))
+
+    pair("a", "farthest", 0, 20.0, 21.0)
+    pair("a", "farthest", 1, 22.0, 23.0)
+    pair("b", "farthest", 0, 18.0, 21.0)
+    pair("b", "farthest", 1, 19.0, 22.0)
+    pair("a", "fisher", 0, 20.5, 20.0)
+    pair("smoke", "farthest", 0, 10.0, 15.0, smoke=True)
+    pair("a+exposure", "farthest", 0, 15.0, 16.0)
+    pair("b", "fisher", 0, 19.0, 30.0, final_views=["v0", "v9"])  # stale: the run has other views now
+    pair("a", "farthest", 0, 30.0, 40.0, repeat=1)  # a repeat: left out
+    refs = [make_result("a", "hpgs", "initial", 0, 17.0), make_result("a", "hpgs", "all", 0, 25.0),
+            make_result("a", "hpgs", "all", 1, 26.0), make_result("b", "hpgs", "initial", 0, 16.0),
+            make_result("b", "hpgs", "initial", 1, 17.0)]
+    return runs + refs, finals
+
+
+def test_the_schedule_cost_table_pairs_each_run_with_its_final_set(tmp_path):
+    rows, finals = schedule_rows()
+    out = tmp_path / "bench"
+    for r in rows:
+        r.to_json(out / r.scene / r.protocol / r.selector / f"seed{r.seed}{f'-repeat{r.repeat}' if r.repeat else ''}.json")
+    for f in finals:
+        stem = f"seed{f.seed}{f'-repeat{f.repeat}' if f.repeat else ''}"
+        f.to_json(out / f.scene / f.protocol / f.final_set_of.selector / "final-set" / f"{stem}.json")
+    assert sorted(load_final_sets(out), key=repr) == sorted(finals, key=repr)  # they read back as written
+    assert sorted(load_results(out), key=repr) == sorted(rows, key=repr)  # and are not rows of the other tables
+    page = tmp_path / "results.md"
+    write_report(out, results_page=page)
+    table = (out / "table.md").read_text()
+    assert table.startswith(markdown_table(load_results(out)) + "\n**Schedule cost (final-set − run)**\n")  # unchanged above
+    expected = [
+        # scene | protocol | selector | seeds | views | run | final-set | cost (final - run, mean over seeds) | initial | all
+        "| a | hpgs | farthest | 2 | 8 | 21.00 | 22.00 | +1.00 | 17.00 (1) | 25.50 |",
+        "| a | hpgs | fisher | 1 | 8 | 20.50 | 20.00 | -0.50 | 17.00 | 25.00 |",
+        "| a+exposure | hpgs | farthest | 1 | 8 | 15.00 | 16.00 | +1.00 | – | – |",
+        "| b | hpgs | farthest | 2 | 8 | 18.50 | 21.50 | +3.00 | 16.50 | – |",
+        "| smoke | hpgs | farthest | 1 | 8 | 10.00 | 15.00 | +5.00 | – | – |",
+        # across scenes a and b only (no smoke, no stress copy): costs 1 and 3 -> mean 2; resampling two scenes
+        # gives 1, 2 or 3 with chances 1/4, 1/2, 1/4, so the 95% interval is [1, 3]
+        "| hpgs | farthest | 2 | 4 | +2.00 | [+1.00, +3.00] |",
+        "| hpgs | fisher | 1 | 1 | -0.50 | n/a (1 scene) |",
+        "1 final-set result(s) left out: their run has other views now",
+    ]
+    for line in expected:
+        assert line in table and line in page.read_text(), line
+    schedule = table.split("**Schedule cost (final-set − run)**")[1]
+    assert "| 30.00 |" not in schedule and "| b | hpgs | fisher |" not in schedule  # the repeat, the stale pair
+    assert schedule_cost_table(rows, []) == ""

@@ -8,7 +8,9 @@ Versions of the JSON:
   `V1_DEFAULTS` is the one place that says what a missing key means. The scene's folder is read from the
   recorded `ns-train` command, its dataparser from the recorded settings.
 * 2: nested parts (`test`, `timing`, `provenance`), the scene's `data` folder and `dataparser` as fields, and
-  per-test-view metrics (`test_views`, empty when the trainer did not record them).
+  per-test-view metrics (`test_views`, empty when the trainer did not record them). A final-set reference
+  (`hpgs bench --final-set`) also has `final_set_of`, the run it trained the final views of (absent elsewhere,
+  and in version-2 files written before it: None).
 
 `RunResult.from_json` reads every version; `to_json` writes the current one.
 """
@@ -22,7 +24,7 @@ from pathlib import Path
 from typing import Any, Dict, List, Mapping, Optional
 
 from hpgs_ns.atomic_write import write_json_atomic
-from hpgs_ns.bench.names import REFERENCES
+from hpgs_ns.bench.names import is_reference
 from hpgs_ns.errors import UserError
 
 VERSION = 2
@@ -139,6 +141,18 @@ class Provenance:
 
 
 @dataclass(frozen=True)
+class SourceRun:
+    """The selector run a final-set reference belongs to: its result is `<selector>/seed<seed>[-repeat<r>].json`
+    beside the final-set's folder, and `views` are the final views it trained (sorted), to tell a final-set
+    made from other views (the run was re-run since) from a current one."""
+
+    selector: str
+    seed: int
+    repeat: int = 0
+    views: List[str] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
 class RunResult:
     """One benchmark run: one (scene, protocol, selector or reference row, seed, repeat)."""
 
@@ -171,10 +185,17 @@ class RunResult:
     test_views: List[ViewMetrics] = field(default_factory=list)
     """Per test view metrics at the end (empty for runs that did not record them)."""
     provenance: Provenance = field(default_factory=Provenance)
+    final_set_of: Optional[SourceRun] = None
+    """For a final-set reference (`selector` is `final-set`): the run whose final views it trained from step 0."""
 
     @property
     def is_reference(self) -> bool:
-        return self.selector in REFERENCES
+        return is_reference(self.selector)
+
+    @property
+    def final_views(self) -> List[str]:
+        """The views active at the end (initial and chosen), sorted."""
+        return sorted(self.initial_views + self.chosen_views)
 
     @property
     def device(self) -> str:
@@ -191,6 +212,10 @@ class RunResult:
                 value = {g.name: getattr(value, g.name) for g in fields(value)}
             elif f.name in ("psnr_per_round", "test_views"):
                 value = [{g.name: getattr(v, g.name) for g in fields(v)} for v in value]
+            elif f.name == "final_set_of":
+                if value is None:
+                    continue  # only final-set references have one
+                value = {g.name: getattr(value, g.name) for g in fields(value)}
             out[f.name] = value
         return out
 
@@ -217,6 +242,7 @@ class RunResult:
                 psnr_at_round_steps={int(k): float(v) for k, v in (data.get("psnr_at_round_steps") or {}).items()},
                 test_views=[ViewMetrics(**_pick(ViewMetrics, v)) for v in data.get("test_views", [])],
                 provenance=Provenance(**_pick(Provenance, data.get("provenance", {}))),
+                final_set_of=SourceRun(**_pick(SourceRun, data["final_set_of"])) if data.get("final_set_of") else None,
             )
         except (KeyError, TypeError) as err:
             raise ResultError(f"not a benchmark result ({type(err).__name__}: {err})") from None
@@ -263,3 +289,9 @@ def data_from_command(command: str) -> Optional[str]:
 def load_results(out: Path) -> List[RunResult]:
     """Every run under a results folder (`<scene>/<protocol>/<selector>/seed*.json`), in path order."""
     return [RunResult.from_json(p) for p in sorted(Path(out).glob("*/*/*/seed*.json"))]
+
+
+def load_final_sets(out: Path) -> List[RunResult]:
+    """Every final-set reference under a results folder (`<scene>/<protocol>/<selector>/final-set/seed*.json`,
+    beside the run it belongs to; `load_results` does not read them), in path order."""
+    return [RunResult.from_json(p) for p in sorted(Path(out).glob("*/*/*/final-set/seed*.json"))]

@@ -5,6 +5,8 @@ One run per (scene, protocol, selector, seed), plus two reference rows per (scen
 `OUT/<scene>/<protocol>/<selector>/seed<k>.json` (`seed<k>-repeat<r>.json` for `--repeats`); runs whose JSON
 exists are skipped, so a killed sweep resumes, and a finished run made with other settings (code, preference
 model, selector options, schedule, dataparser options, ...) is a one-line error rather than mixed in.
+`--final-set first-seed|all` then trains each finished selector run's final views from step 0 (`final_set_jobs`):
+`OUT/<scene>/<protocol>/<selector>/final-set/seed<k>.json`, redone when its run's views have changed since.
 `hpgs bench --report-only` rebuilds the tables and the plots from whatever JSON is there (`report`), and with
 `--results-page docs/results.md` the results page.
 Scenes come from `--scenes` (folders) or a suite (`--suite real6`, `suites`), which also gives each scene's
@@ -35,10 +37,10 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from hpgs_ns.atomic_write import atomic_path
 from hpgs_ns.bench import provenance
 from hpgs_ns.bench.executors import ExecutorConfig, make_executor, runs_per_device
-from hpgs_ns.bench.names import ALL, INITIAL, REFERENCES
+from hpgs_ns.bench.names import ALL, FINAL_SET, INITIAL, REFERENCES, is_reference
 from hpgs_ns.bench.protocols import DEFAULT_SELECTORS, PROTOCOLS, Protocol, scaled
 from hpgs_ns.bench.report import DEFAULT_RESULTS_PAGE, write_report
-from hpgs_ns.bench.results import Metrics, Provenance, RoundPsnr, RunResult, Timing, ViewMetrics
+from hpgs_ns.bench.results import Metrics, Provenance, RoundPsnr, RunResult, SourceRun, Timing, ViewMetrics
 from hpgs_ns.bench.stress import PerturbationName, StressConfig, perturbed_copy
 from hpgs_ns.bench.suites import SYNTHETIC, Scene, load_suite, scene_from_folder
 from hpgs_ns.errors import UserError
@@ -79,6 +81,13 @@ class Bench:
     """View-addition protocols."""
     references: bool = True
     """Also run the `initial` (no additions) and `all` (every training view) rows."""
+    final_set: Literal["none", "first-seed", "all"] = "none"
+    """Also run a `final-set` reference for selector runs: the run's final views (initial and chosen) trained from
+    step 0 with its seed, steps and settings and no rounds; the report's schedule cost is its PSNR minus the run's.
+    `first-seed`: the runs of the first of --seeds (repeat 0); `all`: every selector run (each one more training
+    run). They run after the sweep's runs, from the finished runs' JSON, into
+    `<selector>/final-set/seed<k>.json`; one whose run has other views now (re-run) is redone. Independent of
+    --no-references."""
     step_scale: float = 1.0
     """Multiply every step count (e.g. 0.01 for a CPU smoke run)."""
     initial_views: Optional[int] = None
@@ -192,16 +201,7 @@ class Bench:
             if not path.exists():
                 todo.append(job)
                 continue
-            made_with = RunResult.from_json(path).provenance.settings  # None in results older than this check
-            settings = run_settings(self, job)
-            changed_keys = [k for k in sorted(set(made_with or {}) | set(settings)) if (made_with or {}).get(k) != settings.get(k)]
-            if made_with is not None and changed_keys and not (self.accept_code_change and changed_keys == ["code"]):
-                changed = ", ".join(changed_keys)
-                raise UserError(
-                    f"hpgs bench: {path} was made with other settings ({changed}); pass another --out to keep both, "
-                    "delete it to re-run" + (", or --accept-code-change if the code change cannot move the numbers"
-                                             if changed_keys == ["code"] else "")
-                )
+            check_settings(self, job, path)
         seen = default_model_scenes(self, todo)
         if seen:
             CONSOLE.print(f"[yellow]hpgs bench: the default preference model was trained on renders of {', '.join(seen)}; "
@@ -209,7 +209,78 @@ class Bench:
         if self.max_runs is not None and len(todo) > self.max_runs:
             CONSOLE.print(f"[yellow]--max-runs {self.max_runs}: {len(todo) - self.max_runs} runs left; run again to continue")
             todo = todo[: self.max_runs]
-        run_sweep(self, todo, self.cluster)
+        failed: Optional[UserError] = None
+        try:
+            run_sweep(self, todo, self.cluster)
+        except UserError as err:  # the runs that did finish still get their final-set references
+            failed = err
+        try:
+            self.run_final_sets(scenes, None if self.max_runs is None else self.max_runs - len(todo))
+        except UserError as err:
+            if failed is None:
+                raise
+            raise UserError(f"{failed}; and {err}") from None
+        if failed is not None:
+            raise failed
+
+    def final_set_jobs(self, scenes: Optional[Sequence[Scene]] = None) -> List[Job]:
+        """A `final-set` job for every selector run that --final-set names and whose result exists: its final
+        views (initial and chosen, read from the result) and its seed and repeat. Runs not finished yet have none."""
+        if self.final_set == "none":
+            return []
+        jobs = []
+        for job in self.jobs(scenes):
+            if job.name in REFERENCES or (self.final_set == "first-seed" and (job.seed != self.seeds[0] or job.repeat)):
+                continue
+            path = job.result_path(self.out)
+            if not path.exists():
+                continue
+            run = RunResult.from_json(path)
+            views = run.final_views
+            if not views or len(views) != run.num_views_final:  # results too old to name every view
+                CONSOLE.print(f"[yellow]hpgs bench: {path} does not name its {run.num_views_final} final views; no final-set for it")
+                continue
+            jobs.append(Job(job.scene, job.protocol, FINAL_SET, job.seed, job.repeat, source=job.name, views=tuple(views)))
+        return jobs
+
+    def final_set_todo(self, scenes: Optional[Sequence[Scene]] = None) -> List[Job]:
+        """The final-set jobs to run: those without a result, and those whose result trained other views than its
+        run has now (the run was re-run: stale, redone). A result made with other settings is an error, as for runs."""
+        todo = []
+        for job in self.final_set_jobs(scenes):
+            path = job.result_path(self.out)
+            if not path.exists():
+                todo.append(job)
+                continue
+            check_settings(self, job, path)
+            source = RunResult.from_json(path).final_set_of
+            if source is None or sorted(source.views) != list(job.views):
+                CONSOLE.print(f"[yellow]hpgs bench: {path} trained other views than its run has now; redoing it")
+                todo.append(job)
+        return todo
+
+    def run_final_sets(self, scenes: Optional[Sequence[Scene]] = None, budget: Optional[int] = None) -> None:
+        """Run the final-set jobs left to do (`final_set_todo`), at most `budget` of them (None: all)."""
+        todo = self.final_set_todo(scenes)
+        if budget is not None and len(todo) > budget:
+            CONSOLE.print(f"[yellow]--max-runs {self.max_runs}: {len(todo) - max(budget, 0)} final-set runs left; "
+                          "run again to continue")
+            todo = todo[: max(budget, 0)]
+        run_sweep(self, todo, self.cluster, what="final-set runs")
+
+
+def check_settings(bench: Bench, job: Job, path: Path) -> None:
+    """A finished run made with other settings than `job` would be now is a one-line error naming what differs."""
+    made_with = RunResult.from_json(path).provenance.settings  # None in results older than this check
+    settings = run_settings(bench, job)
+    changed_keys = [k for k in sorted(set(made_with or {}) | set(settings)) if (made_with or {}).get(k) != settings.get(k)]
+    if made_with is not None and changed_keys and not (bench.accept_code_change and changed_keys == ["code"]):
+        changed = ", ".join(changed_keys)
+        raise UserError(
+            f"hpgs bench: {path} was made with other settings ({changed}); pass another --out to keep both, "
+            "delete it to re-run" + (", or --accept-code-change if the code change cannot move the numbers"
+                                     if changed_keys == ["code"] else "")
+        )
 
 
 class Job(NamedTuple):
@@ -218,27 +289,36 @@ class Job(NamedTuple):
     scene: Scene
     protocol: Protocol
     name: str
-    """A selector, or a reference row (`names.REFERENCES`)."""
+    """A selector, a reference row (`names.REFERENCES`), or `names.FINAL_SET`."""
     seed: int
     repeat: int = 0
+    source: str = ""
+    """A final-set job's selector run (its seed and repeat are the job's)."""
+    views: Tuple[str, ...] = ()
+    """A final-set job's views: its run's final views, sorted."""
 
     @property
     def label(self) -> str:
-        return f"{self.scene.name}/{self.protocol.name}/{self.name}/{self.stem}"
+        return f"{self.scene.name}/{self.protocol.name}/{self.folder}/{self.stem}"
+
+    @property
+    def folder(self) -> str:
+        """The result's folder under the protocol: the name, or `<selector>/final-set` beside the run it belongs to."""
+        return f"{self.source}/{FINAL_SET}" if self.name == FINAL_SET else self.name
 
     @property
     def stem(self) -> str:
         return f"seed{self.seed}" + (f"-repeat{self.repeat}" if self.repeat else "")
 
     def result_path(self, out: Path) -> Path:
-        return out / self.scene.name / self.protocol.name / self.name / f"{self.stem}.json"
+        return out / self.scene.name / self.protocol.name / self.folder / f"{self.stem}.json"
 
     def log_path(self, out: Path) -> Path:
-        return out / "_runs" / f"{self.scene.name}-{self.protocol.name}-{self.name}-{self.stem}.log"
+        return out / "_runs" / f"{self.scene.name}-{self.protocol.name}-{self.folder.replace('/', '-')}-{self.stem}.log"
 
     def run_folder(self, run_root: Path) -> Path:
         """Where ns-train writes the run (its `--output-dir`/`--experiment-name`/method/`--timestamp`)."""
-        return run_root / self.scene.name / "hpgs" / f"{self.protocol.name}-{self.name}-{self.stem}"
+        return run_root / self.scene.name / "hpgs" / f"{self.protocol.name}-{self.folder.replace('/', '-')}-{self.stem}"
 
 
 def resolve_scenes(scenes: Sequence[Scene], folder: Path) -> List[Scene]:
@@ -268,11 +348,13 @@ def train_args(bench: Bench, job: Job, run_root: Path) -> List[str]:
     protocol, name, seed = job.protocol, job.name, job.seed
     initial = bench.initial_views or protocol.initial_views
     selector, rounds = name, protocol.max_rounds
-    if name == INITIAL:
+    if name in (INITIAL, FINAL_SET):
         selector, rounds = "random", 0
     elif name == ALL:
         selector, rounds, initial = "random", 0, 100000
     datamanager: Dict[str, Any] = {"num-initial-views": initial, "initial-views": protocol.initial_mode, "seed": seed}
+    if name == FINAL_SET:  # its run's final views, named, from step 0
+        datamanager = {"num-initial-views": len(job.views), "initial-view-names": list(job.views), "seed": seed}
     selection: Dict[str, Any] = {"max-rounds": rounds, "selector": selector, "eval-each-round": True}
     if protocol.select_at:
         selection["select-at"] = protocol.select_at
@@ -282,11 +364,11 @@ def train_args(bench: Bench, job: Job, run_root: Path) -> List[str]:
         selection["reset-after-add"] = True
     if bench.strict_init:
         datamanager["strict-init"] = True
-    if bench.stop_when_gain_below is not None and name not in REFERENCES:
+    if bench.stop_when_gain_below is not None and not is_reference(name):
         selection["stop-when-gain-below"] = bench.stop_when_gain_below
         if bench.gain_model is not None:
             selection["gain-model"] = Path(bench.gain_model).resolve()
-    if bench.log_candidate_scores and name not in REFERENCES:
+    if bench.log_candidate_scores and not is_reference(name):
         selection["log-candidate-scores"] = True
     selection.update(scene_selector_options(bench, job))
     return ns_train_command(
@@ -302,7 +384,7 @@ def run_settings(bench: Bench, job: Job) -> dict:
     """What changes a run's numbers without changing its result path (checked when a sweep resumes): the
     schedule, the dataparser and its options, the code that trains and selects, the selector's options and its
     preference model."""
-    selector = None if job.name in REFERENCES else job.name
+    selector = None if is_reference(job.name) else job.name
     own = [w for k, v in scene_selector_options(bench, job).items() for w in (f"--{SELECTION_PREFIX}{k}", str(v))]
     options = provenance.selector_options(selector, shlex.split(bench.extra_args) + own) if selector else None
     return {
@@ -458,6 +540,7 @@ def run_one(bench: Bench, job: Job, env: Optional[Dict[str, str]] = None, sweep:
         chosen_views=[v for r in rounds for v in r["chosen"]],
         provenance=Provenance(command=shlex.join(cmd), device=device_name(), git_commit=provenance.git_commit(),
                               libraries=library_versions(), settings=run_settings(bench, job)),
+        final_set_of=SourceRun(job.source, job.seed, job.repeat, list(job.views)) if job.name == FINAL_SET else None,
     )
 
 
@@ -528,7 +611,7 @@ def sweep_worker(item: Tuple[Bench, Job, Dict[str, Any]], env: Dict[str, str]) -
     return {"result": result}
 
 
-def run_sweep(bench: Bench, jobs: Sequence[Job], config: ExecutorConfig) -> None:
+def run_sweep(bench: Bench, jobs: Sequence[Job], config: ExecutorConfig, what: str = "runs") -> None:
     """Driver side: run `jobs` on the configured executor; every finished run's JSON ends up under `bench.out`.
 
     Every worker writes its run's JSON itself (temp file + rename) as well: a run that finishes while the driver is
@@ -541,7 +624,7 @@ def run_sweep(bench: Bench, jobs: Sequence[Job], config: ExecutorConfig) -> None
     executor = make_executor(config, bench.out)
     # host-time.pid: two sweeps started in the same second on one machine stay apart
     sweep = {"id": f"{socket.gethostname()}-{int(time.time())}.{os.getpid()}", "runs_per_gpu": runs_per_device(config)}
-    CONSOLE.print(f"hpgs bench: {len(jobs)} runs to do ({config.executor}, {sweep['runs_per_gpu']} per device)")
+    CONSOLE.print(f"hpgs bench: {len(jobs)} {what} to do ({config.executor}, {sweep['runs_per_gpu']} per device)")
     failures: List[str] = []
     errors: List[str] = []
     columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())

@@ -4,7 +4,8 @@ page (`write_report`).
 Everything here reads the per-run results (`results.load_results`) and writes nothing but tables, figures and
 the page, so `hpgs bench --report-only` can rebuild it from any results folder. Which selector beats which is
 decided in `paired.md` only (`stats`: runs paired by scene and seed, intervals over scenes); `table.md`'s means
-and spreads are for reading.
+and spreads are for reading. Where runs have final-set references (`hpgs bench --final-set`), `table.md` and the
+results page also show each run's schedule cost (`schedule`).
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from typing import Dict, List, Optional
 from hpgs_ns.atomic_write import write_text_atomic
 from hpgs_ns.bench.report.paired import comparable, comparison_plan, paired_report, verdict_sentence
 from hpgs_ns.bench.report.plots import camera_map, gain_plot, make_plots, stress_plot
+from hpgs_ns.bench.report.schedule import schedule_cost_table
 from hpgs_ns.bench.report.tables import (
     device_counts,
     markdown_table,
@@ -24,9 +26,10 @@ from hpgs_ns.bench.report.tables import (
     throughput_table,
     work_table,
 )
-from hpgs_ns.bench.results import load_results
+from hpgs_ns.bench.results import load_final_sets, load_results
 
 DEFAULT_RESULTS_PAGE = Path("docs/results.md")
+SCHEDULE_TITLE = "**Schedule cost (final-set − run)**"
 
 
 def write_report(out: Path, results_page: Optional[Path] = None) -> List[Path]:
@@ -34,22 +37,27 @@ def write_report(out: Path, results_page: Optional[Path] = None) -> List[Path]:
     Returns the files written."""
     rows = load_results(out)
     written = []
-    sections = {"table.md": markdown_table(rows), "paired.md": paired_report(rows), "work.md": work_table(rows),
+    schedule = schedule_cost_table(rows, load_final_sets(out))
+    table = markdown_table(rows) + (f"\n{SCHEDULE_TITLE}\n\n{schedule}" if schedule else "")
+    sections = {"table.md": table, "paired.md": paired_report(rows), "work.md": work_table(rows),
                 "noise.md": noise_table(rows), "throughput.md": throughput_table(rows), "stress.md": stress_table(rows)}
     for name, text in sections.items():
         if text:
             written.append(write_text_atomic(out / name, text))
     written += stress_plot(rows, out) + make_plots(rows, out) + gain_plot(rows, out)
     if results_page is not None:
-        written.append(write_text_atomic(results_page, results_page_text(out, sections)))
+        written.append(write_text_atomic(results_page, results_page_text(out, {**sections, "schedule": schedule})))
     return written
 
 
 def results_section(out: Path, sections: Dict[str, str]) -> str:
-    """The comparisons, repeat noise and throughput of a results folder, as markdown."""
+    """The comparisons, the schedule cost (with final-set references), repeat noise and throughput of a results
+    folder, as markdown."""
     parts = [f"Built by `hpgs bench --out {out.as_posix()} --report-only`; every comparison pairs runs by scene and seed.", ""]
     if sections["paired.md"]:
         parts += [sections["paired.md"]]
+    if sections.get("schedule"):  # `schedule.schedule_cost_table`, where runs have final-set references
+        parts += [SCHEDULE_TITLE, "", sections["schedule"]]
     for name, title in (("noise.md", "Repeat noise against seed spread"), ("throughput.md", "Throughput")):
         if sections[name]:
             parts += [f"**{title}**", "", sections[name]]
@@ -67,6 +75,6 @@ def results_page_text(out: Path, sections: Dict[str, str]) -> str:
 __all__ = [
     "DEFAULT_RESULTS_PAGE", "camera_map", "comparable", "comparison_plan", "device_counts", "gain_plot",
     "load_results", "make_plots", "markdown_table", "noise_table", "paired_report", "results_page_text",
-    "results_section", "solo", "stress_plot", "stress_table", "throughput_table", "verdict_sentence", "work_table",
-    "write_report",
+    "results_section", "schedule_cost_table", "solo", "stress_plot", "stress_table", "throughput_table",
+    "verdict_sentence", "work_table", "write_report",
 ]
