@@ -56,6 +56,15 @@ def commands() -> Dict[str, List[str]]:
     return out
 
 
+def git_commit() -> str:
+    """HEAD of the checkout this script is in, with `+dirty` if the tree has changes (the code timed, unless
+    PYTHONPATH points elsewhere)."""
+    root = Path(__file__).resolve().parent.parent
+    git = lambda *a: subprocess.run(["git", *a], cwd=root, capture_output=True, text=True).stdout.strip()  # noqa: E731
+    head = git("rev-parse", "--short", "HEAD")
+    return head + ("+dirty" if git("status", "--porcelain", "--untracked-files=no") else "")
+
+
 def run_once(argv: List[str]) -> dict:
     start = time.perf_counter()
     proc = subprocess.run(argv, capture_output=True, text=True)
@@ -67,8 +76,10 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/help_time.json"))
     ap.add_argument("--runs", type=int, default=3, help="timed runs per command (after one untimed)")
     ap.add_argument("--only", default="", help="only the commands whose label contains this text")
+    ap.add_argument("--note", default="", help="stored in the JSON (e.g. which code was timed)")
     args = ap.parse_args()
 
+    load_at_start = os.getloadavg()
     rows = []
     print(f"{'command':<40} {'median s':>9} {'min s':>7} {'max s':>7}  notes")
     for label, argv in commands().items():
@@ -89,7 +100,11 @@ def main() -> None:
     result = {
         "what": "wall seconds of each CLI's --help; median of the timed runs after one untimed run",
         "runs": args.runs,
+        "note": args.note,
+        "git_commit": git_commit(),
+        "pythonpath": os.environ.get("PYTHONPATH", ""),
         "cpu_count": os.cpu_count(),
+        "load_average_at_start": load_at_start,
         "load_average_at_end": os.getloadavg(),
         "machine": platform.machine(),
         "python": platform.python_version(),
