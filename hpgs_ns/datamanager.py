@@ -67,9 +67,18 @@ class ActiveDatamanagerConfig(FullImageDatamanagerConfig):
     file name where that is unambiguous); overrides initial-views."""
     seed: int = 0
     """Seeds the initial views (random/fps), the order views are trained in, and the selectors' randomness."""
+    seed_points: Literal["colmap", "colmap-initial", "active", "random"] = "colmap"
+    """Where the splat's seed points come from. `colmap`: the dataparser's points (a COLMAP model built from every
+    photo, test and withheld ones included), kept as the default for comparability with published tables and with
+    every number reported here so far. `colmap-initial`: only those COLMAP points whose track includes two initial
+    views, so withheld and test views leak no geometry into the starting splat (needs a COLMAP model with point
+    tracks). `active`: points triangulated from the initial views' photos alone at their known poses
+    (`hpgs_ns.scenes.triangulate`), for any scene (COLMAP, nerfstudio-data, Blender: no tracks needed), and again
+    after each round with the views it added (new points away from the splat join it as Gaussians); too few points
+    -> random points, with one line naming the count. `random`: splatfacto's random points (as
+    --pipeline.model.random-init True)."""
     strict_init: bool = False
-    """Keep only the COLMAP seed points whose track includes at least two initial views, so withheld and test
-    views leak no geometry into the starting splat."""
+    """Deprecated: --pipeline.datamanager.seed-points colmap-initial."""
     # Up to 0.2 the selection loop's options were set here; they moved to `--pipeline.selection.*`
     # (`hpgs_ns.selection.config`). These copies only carry the old spelling there, with a warning.
     selector: Optional[SelectorName] = None
@@ -176,8 +185,15 @@ class ActiveDatamanager(FullImageDatamanager):
         """The run's selection options as the checkpoint keeps them (set by the pipeline; see `HpgsTrainer`)."""
         self.loaded_selection_signature: Optional[Dict[str, str]] = None
         """The checkpoint's, once one is loaded (None for checkpoints written before 0.3)."""
-        if self.config.strict_init:
+        self.triangulation: Optional[Any] = None
+        """The `TriangulationWorkspace` of `seed-points active` (features and matches of the views seen so far)."""
+        self.seed_points_mode = self._seed_points_mode()
+        if self.seed_points_mode == "colmap-initial":
             self._keep_points_seen_by_initial_views()
+        elif self.seed_points_mode == "random":
+            self._drop_seed_points()
+        elif self.seed_points_mode == "active" and test_mode != "inference":  # ns-eval/ns-viewer load the checkpoint's
+            self._triangulate_seed_points()
         self.train_unseen_cameras = self.sample_train_cameras()
 
     # ---- which views are active ----------------------------------------------------------------------------
@@ -235,6 +251,59 @@ class ActiveDatamanager(FullImageDatamanager):
         if matches:
             raise ActiveViewError(f"{role} view {name!r} names several views; write it whole, e.g. {self.image_names[matches[0]]!r}")
         raise ActiveViewError(f"{role} view {name!r} is not a training view (test views cannot be used)")
+
+    # ---- seed points (`--pipeline.datamanager.seed-points`) ------------------------------------------------
+
+    def _seed_points_mode(self) -> str:
+        """`seed-points`, with the deprecated `strict-init True` read as `colmap-initial`."""
+        mode = self.config.seed_points
+        if not self.config.strict_init:
+            return mode
+        if mode not in ("colmap", "colmap-initial"):
+            raise ActiveViewError(f"--pipeline.datamanager.strict-init True contradicts --pipeline.datamanager.seed-points {mode}; "
+                                  "drop strict-init")
+        CONSOLE.print("[yellow]--pipeline.datamanager.strict-init is deprecated: use --pipeline.datamanager.seed-points "
+                      "colmap-initial", soft_wrap=True, highlight=False)
+        return "colmap-initial"
+
+    def _drop_seed_points(self) -> None:
+        """No seed points: splatfacto then starts from its random points (as --pipeline.model.random-init True)."""
+        meta = self.train_dataparser_outputs.metadata
+        for key in [k for k in meta if k.startswith("points3D_")]:
+            del meta[key]
+
+    def _triangulate_seed_points(self) -> None:
+        """`seed-points active`: the seed points triangulated from the initial views' photos alone; random points
+        (one line naming the count) when too few."""
+        from hpgs_ns.scenes.triangulate import seed_points
+
+        self._drop_seed_points()  # the dataparser's points (every photo's) never reach the model
+        points = seed_points(self.train_dataset.cameras, self.train_dataset.image_filenames, self.active,
+                             existing=self.triangulation_workspace())
+        if points is None:
+            return
+        meta = self.train_dataparser_outputs.metadata
+        meta["points3D_xyz"], meta["points3D_rgb"] = points
+        CONSOLE.print(f"seed points: {points[0].shape[0]} triangulated from the {len(self.active)} initial views")
+
+    def triangulation_workspace(self):
+        """The run's `TriangulationWorkspace`, made on first use and removed when the datamanager goes (or at exit).
+        A resumed run makes a new one: its first round extracts every active view again."""
+        if self.triangulation is None:
+            import weakref
+
+            from hpgs_ns.scenes.triangulate import TriangulationWorkspace
+
+            self.triangulation = TriangulationWorkspace()
+            weakref.finalize(self, self.triangulation.close)
+        return self.triangulation
+
+    def triangulate_active(self):
+        """`triangulate_views` over the active views now, reusing the workspace: (xyz [N, 3], rgb [N, 3], info)."""
+        from hpgs_ns.scenes.triangulate import triangulate_views
+
+        return triangulate_views(self.train_dataset.cameras, self.train_dataset.image_filenames, self.active,
+                                 existing=self.triangulation_workspace())
 
     def _keep_points_seen_by_initial_views(self, min_views: int = 2) -> None:
         """Filter the dataparser's seed points in place (the pipeline hands them to the model after this)."""

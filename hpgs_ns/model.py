@@ -28,6 +28,7 @@ from collections import defaultdict
 from dataclasses import dataclass, field
 from typing import Any, Callable, Dict, Iterator, List, Literal, Optional, Tuple, Type, Union
 
+import numpy as np
 import torch
 from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.models import splatfacto
@@ -210,6 +211,79 @@ class HpgsSplatfactoModel(SplatfactoModel):
         lowered = int((self.gauss_params["opacities"] > torch.logit(torch.tensor(value))).sum())
         reset_opa(params=self.gauss_params, optimizers=optimizers, state=self.strategy_state, value=value)
         return lowered
+
+    # ---- seed points after a round (`seed-points active`) -------------------------------------------------------
+
+    @torch.no_grad()
+    def points_away_from_splat(self, xyz: torch.Tensor) -> torch.Tensor:
+        """[N] bool: which of the points `xyz` [N, 3] lie farther from every Gaussian's mean than the splat's median
+        nearest-neighbour spacing.
+
+        That spacing is the splat's own sampling density where it has Gaussians (densification keeps it in step with
+        the detail the views show): a point closer than it adds nothing the splat lacks, while a point farther lies
+        where no Gaussian is, the part of the scene only the new views show. A fixed fraction of the scene's extent
+        would ignore densification and the scene's scale (floaters or walls far off stretch the extent)."""
+        from scipy.spatial import cKDTree
+
+        means = self.means.detach().cpu().double().numpy()
+        if xyz.shape[0] == 0 or means.shape[0] < 2:
+            return torch.ones(xyz.shape[0], dtype=torch.bool)
+        tree = cKDTree(means)
+        sample = means if means.shape[0] <= 20000 else means[torch.randperm(means.shape[0])[:20000].numpy()]
+        spacing = float(np.median(tree.query(sample, k=2)[0][:, 1]))
+        distance = tree.query(xyz.detach().cpu().double().numpy(), k=1)[0]
+        return torch.from_numpy(distance > spacing)
+
+    @torch.no_grad()
+    def add_gaussians(self, xyz: torch.Tensor, rgb: torch.Tensor, optimizers) -> int:
+        """Append Gaussians at `xyz` [K, 3] with colours `rgb` [K, 3] (uint8), initialised as splatfacto's
+        `populate_modules` does seed points: scales the log of the mean distance to the 3 nearest means (the splat's
+        and the new points'), random rotations, opacity 0.1, colour from RGB (SH DC term, or logit for sh-degree 0),
+        higher SH bands zero. Every optimizer (`Optimizers` or {name: optimizer}) is pointed at the grown tensors with
+        zero Adam moments for the new rows; the densification statistics grow with zeros. Returns K."""
+        from gsplat.strategy.ops import _update_param_with_optimizer  # pure PyTorch: safe on a CPU machine
+        from sklearn.neighbors import NearestNeighbors
+
+        k = int(xyz.shape[0])
+        if k == 0:
+            return 0
+        optimizers = getattr(optimizers, "optimizers", optimizers)
+        old = int(self.num_points)
+        means = xyz.detach().float().cpu()
+        everything = torch.cat([self.means.detach().cpu(), means]).numpy()
+        neighbours = min(3, everything.shape[0] - 1)
+        if neighbours >= 1:
+            distances = NearestNeighbors(n_neighbors=neighbours + 1).fit(everything).kneighbors(means.numpy())[0][:, 1:]
+            avg = torch.from_numpy(distances).float().mean(-1, keepdim=True).clamp_min(1e-7)
+        else:
+            avg = torch.full((k, 1), 0.01)
+        colours = rgb.detach().float().cpu() / 255
+        dc = splatfacto.RGB2SH(colours) if self.config.sh_degree > 0 else torch.logit(colours, eps=1e-10)
+        rest = self.gauss_params["features_rest"]
+        new = {
+            "means": means,
+            "scales": torch.log(avg.repeat(1, 3)),
+            "quats": splatfacto.random_quat_tensor(k),
+            "features_dc": dc,
+            "features_rest": torch.zeros((k, *rest.shape[1:])),
+            "opacities": torch.logit(0.1 * torch.ones(k, 1)),
+        }
+        missing = set(self.gauss_params.keys()) - set(new)
+        if missing:
+            raise ValueError(f"add_gaussians does not know how to start {sorted(missing)}")
+
+        def grown(name: str, param: torch.Tensor) -> torch.nn.Parameter:
+            rows = new[name].to(device=param.device, dtype=param.dtype).reshape(k, *param.shape[1:])
+            return torch.nn.Parameter(torch.cat([param.detach(), rows]), requires_grad=param.requires_grad)
+
+        def zero_rows(key: str, value: torch.Tensor) -> torch.Tensor:
+            return torch.cat([value, torch.zeros((k, *value.shape[1:]), device=value.device, dtype=value.dtype)])
+
+        _update_param_with_optimizer(grown, zero_rows, self.gauss_params, optimizers, names=list(self.gauss_params.keys()))
+        for key, value in self.strategy_state.items():
+            if isinstance(value, torch.Tensor) and value.shape[:1] == (old,):
+                self.strategy_state[key] = zero_rows(key, value)
+        return k
 
     # ---- reset to step 0 (reset-after-add) -----------------------------------------------------------------
 

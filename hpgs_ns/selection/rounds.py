@@ -153,6 +153,8 @@ class SelectionRounds:
                 elif self.config.after_add.enabled and attrs.optimizers is not None:
                     self.datamanager.history[-1].after_add = apply_after_add(self.config.after_add, self.model, attrs.optimizers, step)
                     self.write_log()
+                if getattr(self.datamanager, "seed_points_mode", None) == "active" and attrs.optimizers is not None:
+                    self.add_seed_points(step, attrs.optimizers)
             elif self.config.eval_each_round and self.is_scheduled(step):
                 # No round here (none left, or a reference run): the test PSNR at the step still says what the
                 # views so far are worth against a run that added others (early_stop's calibration).
@@ -242,6 +244,28 @@ class SelectionRounds:
         CONSOLE.print(f"reset after add: {before} -> {model.num_points} Gaussians, schedules restart at step {step}")
         writer.put_scalar("selection/num_gaussians_before_reset", before, step)
         self.write_log()
+
+    def add_seed_points(self, step: int, optimizers) -> int:
+        """`seed-points active`: triangulate the active views again (the round's new views with the earlier ones,
+        whose features and matches the datamanager's workspace keeps) and add the points away from the splat as new
+        Gaussians. Recorded in the round's `after_add` (`seed_points_added`, `seed_points_seconds`)."""
+        dm, model = self.datamanager, self.model
+        start = time.perf_counter()
+        xyz, rgb, info = dm.triangulate_active()
+        added = 0
+        if info.failed:
+            CONSOLE.print(f"[yellow]seed points after round {len(dm.history)}: {info.message}; no Gaussians added", soft_wrap=True)
+        elif xyz.shape[0]:
+            away = model.points_away_from_splat(xyz)
+            added = model.add_gaussians(xyz[away], rgb[away], optimizers)
+        seconds = time.perf_counter() - start
+        record = dm.history[-1]
+        record.after_add = {**record.after_add, "seed_points_added": float(added), "seed_points_seconds": float(seconds)}
+        CONSOLE.print(f"seed points after round {record.round}: {xyz.shape[0]} triangulated from {len(dm.active)} views, "
+                      f"{added} away from the splat added ({model.num_points} Gaussians, {seconds:.1f} s)")
+        writer.put_scalar("selection/seed_points_added", added, step)
+        self.write_log()
+        return added
 
     @torch.no_grad()
     def test_psnr(self) -> float:

@@ -1,0 +1,149 @@
+"""`--pipeline.datamanager.seed-points`: where the splat's seed points come from (colmap, colmap-initial, active,
+random), the Gaussians a round adds in `active` mode (`add_gaussians`), and `strict-init True` read as
+`colmap-initial`."""
+
+from __future__ import annotations
+
+import shutil
+
+import numpy as np
+import pytest
+import torch
+from conftest import require_shared, short_config
+
+import hpgs_ns.scenes.triangulate as triangulate
+
+
+def setup_trainer(cfg):
+    trainer = cfg.setup(local_rank=0, world_size=1)
+    trainer.setup()
+    return trainer
+
+
+@pytest.fixture
+def juicebox():
+    data = require_shared("data", "juicebox")
+    if not (data / "images_2").is_dir():  # the parser would write it into the shared folder
+        pytest.skip(f"{data / 'images_2'} not found")
+    return data
+
+
+def juicebox_config(data, out, **options):
+    cfg = short_config(data, out, **options)
+    cfg.pipeline.datamanager.dataparser.downscale_factor = 2
+    return cfg
+
+
+@pytest.fixture
+def spy(monkeypatch):
+    """The views each `triangulate_views` call was given."""
+    calls = []
+    original = triangulate.triangulate_views
+
+    def recording(cameras, image_paths, indices, **options):
+        calls.append(sorted(int(i) for i in indices))
+        return original(cameras, image_paths, indices, **options)
+
+    monkeypatch.setattr(triangulate, "triangulate_views", recording)
+    return calls
+
+
+def test_active_seeds_from_the_initial_views_only_and_a_round_adds_gaussians(juicebox, tmp_path, spy):
+    cfg = juicebox_config(juicebox, tmp_path / "run", steps=3, select_at=(1,), rounds=1, initial=8, selector="random",
+                          seed_points="active")
+    trainer = setup_trainer(cfg)
+    dm, model = trainer.pipeline.datamanager, trainer.pipeline.model
+    initial = list(dm.active)
+    assert spy == [initial]  # the initial views' photos, nothing else
+    seeded = model.num_points
+    assert 100 <= seeded < 5000  # triangulated, not the COLMAP model's points nor 50000 random ones
+    trainer.train()
+    record = dm.history[0]
+    assert spy[1] == sorted(initial + record.chosen_indices)
+    added = int(record.after_add["seed_points_added"])
+    assert added > 0 and record.after_add["seed_points_seconds"] > 0
+    saved = trainer.pipeline.model.num_points  # refinement is off at these steps: only the round grew the splat
+    assert saved == seeded + added
+    # --load-dir: the checkpoint holds the grown splat
+    copy = shutil.copytree(trainer.base_dir, tmp_path / "copy")
+    resume = juicebox_config(juicebox, tmp_path / "resumed", steps=3, select_at=(1,), rounds=1, initial=8, selector="random",
+                             seed_points="active")
+    resume.load_dir = copy / "nerfstudio_models"
+    resumed = setup_trainer(resume)
+    assert resumed.pipeline.model.num_points == saved
+    assert resumed.pipeline.datamanager.history[0].after_add["seed_points_added"] == added
+
+
+def test_active_with_too_few_matches_starts_from_random_points_with_one_line(tiny_scene, tmp_path, spy, capsys):
+    cfg = short_config(tiny_scene, tmp_path, steps=1, rounds=0, seed_points="active")
+    cfg.pipeline.model.num_random = 3000
+    trainer = setup_trainer(cfg)
+    out = capsys.readouterr()
+    lines = [line for line in (out.out + out.err).splitlines() if "Seed points" in line or "triangulat" in line]
+    assert len(lines) == 1, lines
+    assert "points triangulated from 6 views" in lines[0] and "random points" in lines[0]
+    count = int(lines[0].split("only ")[1].split()[0])
+    assert count < triangulate.DEFAULT_MIN_POINTS
+    assert spy == [trainer.pipeline.datamanager.active]
+    assert trainer.pipeline.model.num_points == 3000  # splatfacto's random init
+
+
+def test_random_mode_is_splatfactos_random_init(tiny_scene, tmp_path):
+    cfg = short_config(tiny_scene, tmp_path, steps=1, rounds=0, seed_points="random")
+    cfg.pipeline.model.num_random = 2000
+    model = setup_trainer(cfg).pipeline.model
+    assert model.num_points == 2000
+    assert float(model.means.abs().max()) <= cfg.pipeline.model.random_scale / 2
+
+
+def run_callbacks(trainer, step, location):
+    for callback in trainer.callbacks:
+        callback.run_callback_at_location(step, location=location)
+
+
+def test_add_gaussians_grows_the_splat_its_optimizers_and_strategy_state(tiny_scene, tmp_path):
+    from nerfstudio.engine.callbacks import TrainingCallbackLocation as At
+
+    trainer = setup_trainer(short_config(tiny_scene, tmp_path, steps=10, rounds=0))
+    model, optimizers = trainer.pipeline.model, trainer.optimizers.optimizers
+    for step in range(2):
+        run_callbacks(trainer, step, At.BEFORE_TRAIN_ITERATION)
+        trainer.train_iteration(step)
+        run_callbacks(trainer, step, At.AFTER_TRAIN_ITERATION)
+    n, k = model.num_points, 7
+    before = {name: p.detach().clone() for name, p in model.gauss_params.items()}
+    moments = {name: optimizers[name].state[model.gauss_params[name]]["exp_avg"].clone() for name in before}
+    assert model.strategy_state["grad2d"] is not None and model.strategy_state["grad2d"].shape[0] == n
+    xyz = model.means.detach()[:k] + 0.01
+    rgb = torch.randint(0, 256, (k, 3), dtype=torch.uint8)
+    assert model.add_gaussians(xyz, rgb, trainer.optimizers) == k
+    assert model.num_points == n + k
+    for name, param in model.gauss_params.items():
+        assert param.shape[0] == n + k and torch.equal(param[:n].detach(), before[name])
+        optimizer = optimizers[name]
+        assert optimizer.param_groups[0]["params"][0] is param
+        state = optimizer.state[param]
+        assert torch.equal(state["exp_avg"][:n], moments[name]) and not state["exp_avg"][n:].any()
+        assert state["exp_avg_sq"].shape == param.shape and not state["exp_avg_sq"][n:].any()
+    assert torch.allclose(model.means[n:], xyz)
+    assert torch.allclose(model.opacities[n:], torch.logit(torch.tensor(0.1)))
+    assert torch.allclose(model.features_dc[n:], (rgb.float() / 255 - 0.5) / 0.28209479177387814, atol=1e-5)
+    assert not model.gauss_params["features_rest"][n:].any()
+    assert np.isfinite(model.scales[n:].detach().numpy()).all()
+    for key in ("grad2d", "count"):
+        assert model.strategy_state[key].shape[0] == n + k and not model.strategy_state[key][n:].any()
+    # training goes on with the grown splat: the new Gaussians get gradients and move
+    run_callbacks(trainer, 2, At.BEFORE_TRAIN_ITERATION)
+    trainer.train_iteration(2)
+    run_callbacks(trainer, 2, At.AFTER_TRAIN_ITERATION)
+    assert model.num_points == n + k and model.strategy_state["grad2d"].shape[0] == n + k
+
+
+def test_strict_init_true_still_means_colmap_initial(tiny_scene, tmp_path, capsys):
+    strict = setup_trainer(short_config(tiny_scene, tmp_path / "strict", steps=1, rounds=0, strict_init=True))
+    out = capsys.readouterr().out
+    assert "strict-init is deprecated: use --pipeline.datamanager.seed-points colmap-initial" in " ".join(out.split())
+    initial = setup_trainer(short_config(tiny_scene, tmp_path / "new", steps=1, rounds=0, seed_points="colmap-initial"))
+    everything = setup_trainer(short_config(tiny_scene, tmp_path / "all", steps=1, rounds=0))
+    assert strict.pipeline.datamanager.seed_points_mode == "colmap-initial"
+    assert strict.pipeline.model.num_points == initial.pipeline.model.num_points < everything.pipeline.model.num_points
