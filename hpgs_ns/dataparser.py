@@ -74,6 +74,21 @@ class MipNerf360DataParserConfig(ColmapDataParserConfig):
                      0 <= self.max_unreadable_fraction <= 1, "must be within [0, 1]", "pass e.g. 0.1 (the default)")
 
 
+def check_data_path(data: Path, colmap_path: Path = Path("sparse/0"), images_path: Path = Path("images")) -> None:
+    """SceneDataError when `--data` names a file or nothing (run while the command line is parsed, too)."""
+    if data.is_file():
+        scene = next((p for p in data.parents if (p / colmap_path).is_dir()), None)
+        if data.name == "transforms.json":
+            fix = f"run: ns-train hpgs [options] nerfstudio-data --data {data.parent}"
+        elif scene is not None:
+            fix = f"pass --data {scene}"
+        else:
+            fix = f"pass --data the scene folder (the one holding {images_path}/ and {colmap_path}/)"
+        raise SceneDataError(f"--data {data} is a file, not a scene folder; {fix}")
+    if not data.is_dir():
+        raise SceneDataError(f"scene folder {data} does not exist; pass --data PATH to a Mip-NeRF 360 style scene")
+
+
 def check_parser_values(config, subcommand: str) -> None:
     """The dataparser options whose values make no sense, as a one-line `OptionError` while tyro parses them."""
     check_option(f"{subcommand} --downscale-factor", config.downscale_factor,
@@ -127,17 +142,7 @@ class MipNerf360DataParser(ColmapDataParser):
 
     def _check_scene_folder(self) -> None:
         data = Path(self.config.data)
-        if data.is_file():
-            scene = next((p for p in data.parents if (p / self.config.colmap_path).is_dir()), None)
-            if data.name == "transforms.json":
-                fix = f"run: ns-train hpgs [options] nerfstudio-data --data {data.parent}"
-            elif scene is not None:
-                fix = f"pass --data {scene}"
-            else:
-                fix = f"pass --data the scene folder (the one holding {self.config.images_path}/ and {self.config.colmap_path}/)"
-            raise SceneDataError(f"--data {data} is a file, not a scene folder; {fix}")
-        if not data.is_dir():
-            raise SceneDataError(f"scene folder {data} does not exist; pass --data PATH to a Mip-NeRF 360 style scene")
+        check_data_path(data, self.config.colmap_path, self.config.images_path)
         model = data / self.config.colmap_path
         if model_file(model, "cameras") is None:
             if (data / "transforms.json").is_file():

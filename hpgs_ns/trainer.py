@@ -30,7 +30,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 
 from hpgs_ns import schedules
 from hpgs_ns.atomic_write import write_json_atomic
-from hpgs_ns.errors import UserError
+from hpgs_ns.errors import OptionError, UserError
 from hpgs_ns.pipeline import upgrade_pipeline_config
 
 # config.yml files of hpgs-ns 0.1 name the scheduler classes here.
@@ -45,6 +45,25 @@ class HpgsTrainerConfig(TrainerConfig):
     _target: Type = field(default_factory=lambda: HpgsTrainer)
     final_eval_json: Optional[Path] = None
     """If set, evaluate the test views once training ends and write `ns-eval`'s JSON here."""
+
+    def __post_init__(self) -> None:
+        # tyro builds this config while it parses the command line: a --data that names a file or nothing is a
+        # one-line error before nerfstudio prints anything or makes a run folder. (A config.yml skips __init__.)
+        if self.data is not None:
+            from hpgs_ns.dataparser import SceneDataError, check_data_path
+
+            try:
+                check_data_path(Path(self.data))
+            except SceneDataError as err:  # a ValueError, which tyro would draw in a box of its own
+                raise OptionError(str(err)) from None
+
+    def print_to_terminal(self) -> None:
+        """One line instead of nerfstudio's ~320-line config dump (the whole config is the run's config.yml)."""
+        pipeline = self.pipeline
+        selection = getattr(pipeline, "selection", None)
+        what = f"selector {selection.selector}, " if selection is not None else ""
+        CONSOLE.print(f"hpgs: {what}{self.max_num_iterations} steps, data {pipeline.datamanager.data}; "
+                      f"the full config: {self.get_base_dir() / 'config.yml'}", soft_wrap=True)
 
 
 class HpgsTrainer(Trainer):

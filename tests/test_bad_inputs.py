@@ -233,3 +233,26 @@ def test_train_pref_without_pairs_names_the_option(tmp_path):
     assert str(info.value) == ("hpgs train-pref: --pairs is required: pass --pairs PAIRS.csv (written by `hpgs label DIR`); "
                                "repeat it for several files")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_data_naming_a_file_or_nothing_is_one_line_while_ns_train_parses(small_scene, tmp_path):
+    from hpgs_ns.method_config import hpgs_trainer_config
+
+    default = hpgs_trainer_config(100)
+    photo = small_scene / "images" / "0001.png"
+    with pytest.raises(OptionError, match=f"^--data {photo} is a file, not a scene folder; pass --data {small_scene}$"):
+        tyro.cli(type(default), default=default, args=["--data", str(photo)])
+    with pytest.raises(OptionError, match="does not exist; pass --data PATH"):
+        tyro.cli(type(default), default=default, args=["--data", str(tmp_path / "nowhere")])
+    assert tyro.cli(type(default), default=default, args=["--data", str(small_scene)]).data == small_scene
+
+
+def test_ns_train_says_one_line_for_its_config_instead_of_dumping_it(tiny_scene, capsys):
+    from hpgs_ns.method_config import hpgs_trainer_config
+
+    cfg = hpgs_trainer_config(100)
+    cfg.data = cfg.pipeline.datamanager.data = tiny_scene
+    cfg.print_to_terminal()
+    out = " ".join(capsys.readouterr().out.split())
+    assert out.startswith("hpgs: selector hpgs, 100 steps, data ") and out.endswith("config.yml")
+    assert str(tiny_scene) in out.replace(" ", "") or str(tiny_scene) in out

@@ -14,11 +14,11 @@ from typing import Dict, Iterable
 
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from hpgs_ns.errors import UserError
+from hpgs_ns.errors import OptionError
 
 
-class AfterAddError(UserError, ValueError):
-    """An after-add option value that makes no sense."""
+class AfterAddError(OptionError):
+    """An after-add option value that makes no sense (not a ValueError: tyro would draw its own box)."""
 
 
 @dataclass
