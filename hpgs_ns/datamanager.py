@@ -311,10 +311,14 @@ class ActiveDatamanager(FullImageDatamanager):
         from hpgs_ns.scenes.colmap_model import read_images, read_points3D
 
         parser = self.config.dataparser
+        # Errors name the option as it was given; `active` needs no tracks.
+        name = "strict-init" if self.config.strict_init else "seed-points colmap-initial"
+        drop = ("drop --pipeline.datamanager.strict-init" if self.config.strict_init
+                else "use --pipeline.datamanager.seed-points active (or colmap)")
         if not hasattr(parser, "colmap_path"):
             raise ActiveViewError(
-                "strict-init needs COLMAP point tracks (which images see each point), which only COLMAP scenes have "
-                "(the mipnerf360 or colmap dataparser); drop --pipeline.datamanager.strict-init"
+                f"{name} needs COLMAP point tracks (which images see each point), which only COLMAP scenes have "
+                f"(the mipnerf360 or colmap dataparser); {drop}"
             )
         meta = self.train_dataparser_outputs.metadata
         if "points3D_xyz" not in meta:
@@ -323,7 +327,7 @@ class ActiveDatamanager(FullImageDatamanager):
         images, points = read_images(model_dir), read_points3D(model_dir)
         if images is None or points is None:
             raise ActiveViewError(
-                f"strict-init needs {model_dir}/images and points3D (.bin or .txt); drop --pipeline.datamanager.strict-init"
+                f"{name} needs {model_dir}/images and points3D (.bin or .txt); {drop}"
             )
         name_to_id = {im.name: im_id for im_id, im in images.items()}
         # COLMAP names images by their path inside the image folder: a view name without its first folder.
@@ -332,16 +336,16 @@ class ActiveDatamanager(FullImageDatamanager):
         tracks = [set(p.image_ids.tolist()) for p in points.values()]
         if not any(tracks):
             raise ActiveViewError(
-                f"{model_dir}/points3D has no point tracks (which images see each point), which strict-init needs; "
-                "use the full COLMAP model or drop --pipeline.datamanager.strict-init"
+                f"{model_dir}/points3D has no point tracks (which images see each point), which {name} needs; "
+                f"use the full COLMAP model or {drop}"
             )
         keep = torch.tensor([len(initial_ids & track) >= min_views for track in tracks])
         if keep.numel() != meta["points3D_xyz"].shape[0]:
-            raise ActiveViewError("seed points and COLMAP tracks disagree; re-run without --pipeline.datamanager.strict-init")
+            raise ActiveViewError(f"seed points and COLMAP tracks disagree; {drop}")
         if not keep.any():
             raise ActiveViewError(
-                f"strict-init kept no seed point: none of {model_dir}/points3D is seen by {min_views} of the "
-                f"{len(self.active)} initial views; use more initial views or drop --pipeline.datamanager.strict-init"
+                f"{name} kept no seed point: none of {model_dir}/points3D is seen by {min_views} of the "
+                f"{len(self.active)} initial views; use more initial views or {drop}"
             )
         for key in [k for k, v in meta.items() if k.startswith("points3D_") and torch.is_tensor(v) and v.shape[:1] == keep.shape]:
             meta[key] = meta[key][keep]
