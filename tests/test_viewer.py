@@ -156,7 +156,7 @@ def test_ns_viewer_shows_the_roles_and_the_rounds(sync_playwright, run_config, t
             page.get_by_text("Round 2").first.scroll_into_view_if_needed()
             text = page.inner_text("body")
             for h in dm.history:
-                assert f"Round {h['round']}" in text and f"step {h['step']}" in text
+                assert f"Round {h.round}" in text and f"step {h.step}" in text
                 assert all(name in text for name in h.chosen)
             # Choosing a round in the dropdown highlights its views.
             page.get_by_label("Highlight").click()
@@ -230,6 +230,6 @@ def test_rounds_redraw_the_view_live(tiny_scene, tmp_path):
                 assert colours[f"/hpgs/added/train_{i:04d}"] == rgb_int(ROLE_COLOURS["added"])
                 assert f"/hpgs/withheld/train_{i:04d}" not in colours
                 assert colours[f"/hpgs/highlight/train_{i:04d}"] == rgb_int(ROLE_COLOURS["highlight"])
-            assert f"**Round {round_}** · step {record['step']}" in listed and f"Round {round_ + 1}" not in listed
+            assert f"**Round {round_}** · step {record.step}" in listed and f"Round {round_ + 1}" not in listed
     finally:
         trainer.shutdown()
