@@ -3,9 +3,10 @@
 COLMAP scenes keep their images_2/ and their model with every 3D point and its track, but no 2D keypoints
 (`device_scene_with_tracks.py`: the dataparser never reads them); fox (nerfstudio-data) gets transforms.json and
 an images_2/ written as its dataparser would (floor rounding). Carry `.devdata/<folder>` per scene a call needs
-and run `hpgs bench --suite real6 --data-root .devdata --suite-scenes NAME ...` there.
+and run `hpgs bench --suite real12 --data-root .devdata --suite-scenes NAME ...` there; `--suite-scenes` here copies
+only those (a call carries one to three scenes).
 
-    python scripts/device_suite_data.py [--suite real6] [--data-root ../shared/data] [--out .devdata]
+    python scripts/device_suite_data.py [--suite real6] [--suite-scenes NAME ...] [--data-root ../shared/data] [--out .devdata]
 """
 
 from __future__ import annotations
@@ -26,10 +27,11 @@ from hpgs_ns.bench.suites import load_suite  # noqa: E402
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--suite", default="real6")
+    ap.add_argument("--suite-scenes", nargs="+", default=[], help="only these scenes of the suite (default: all)")
     ap.add_argument("--data-root", type=Path, default=Path("../shared/data"))
     ap.add_argument("--out", type=Path, default=Path(".devdata"))
     args = ap.parse_args()
-    for scene in load_suite(args.suite, args.data_root):
+    for scene in load_suite(args.suite, args.data_root, args.suite_scenes):
         if scene.smoke:
             continue
         factor = int(scene.option_dict().get("downscale-factor", 1))

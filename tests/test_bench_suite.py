@@ -44,8 +44,18 @@ def test_the_shipped_suite_names_the_six_real_scenes_with_their_settings():
     assert [s.name for s in scenes if s.smoke] == ["synthetic-occluded"]
 
 
+def test_real12_is_real6s_captures_then_tune6s_with_their_settings():
+    root = require_shared("data")
+    scenes = load_suite("real12", root)
+    real6 = [s for s in load_suite("real6", root) if not s.smoke]
+    assert scenes == real6 + load_suite("tune6", root)  # same folders, parsers and options; no smoke scene
+    assert [s.name for s in scenes[6:]] == ["ethiopian-head", "alexander", "figurine-desk", "snowmiku-plush",
+                                            "gerrard-hall", "room-lab"]
+    assert all(s.path.is_dir() and (s.path / "images_2").is_dir() for s in scenes if s.name != "fox")
+
+
 def test_suite_errors_are_one_line(tmp_path):
-    with pytest.raises(SuiteError, match="unknown suite 'nope'; choose one of real6"):
+    with pytest.raises(SuiteError, match="unknown suite 'nope'; choose one of real12, real6, tune6 or"):
         load_suite("nope")
     with pytest.raises(SuiteError, match=r"scene 'bonsai': .* does not exist; pass --data-root DIR"):
         load_suite("real6", tmp_path)

@@ -61,7 +61,8 @@ class Bench:
     procedural scenes (generated into OUT/_scenes on first use)."""
     suite: Optional[str] = None
     """A suite of scenes with their dataparsers and options: a shipped one (`real6`: the six real captures in
-    shared/data at half size, plus a synthetic smoke scene) or a .toml file (see `hpgs_ns/bench/suites.py`)."""
+    shared/data at half size, plus a synthetic smoke scene; `real12`: those six and the six of `tune6`) or a .toml
+    file (see `hpgs_ns/bench/suites.py`)."""
     suite_scenes: List[str] = field(default_factory=list)
     """Only these scenes of the suite (default: all)."""
     data_root: Path = Path("../shared/data")
