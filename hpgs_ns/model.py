@@ -145,7 +145,35 @@ class HpgsSplatfactoModel(SplatfactoModel):
         """The SH degree splatfacto renders with at the current step (None: plain RGB colours)."""
         if self.config.sh_degree <= 0:
             return None
-        return min(self.step // self.config.sh_degree_interval, self.config.sh_degree)
+        return min(self.step // self.clocked(self.config.sh_degree_interval), self.config.sh_degree)
+
+    # ---- the step-keyed schedule's speed (after-add restart-at-views) ------------------------------------------
+
+    clock_scale: float = 1.0
+    """Every step count of splatfacto's schedule (densification start, interval and stop, opacity-reset interval,
+    screen-size culling, SH degree and resolution steps) is multiplied by this: a restart with a third of the run
+    left runs the whole schedule in that third."""
+
+    def clocked(self, steps: int) -> int:
+        return max(int(round(steps * self.clock_scale)), 1)
+
+    def set_clock_scale(self, scale: float) -> None:
+        """Run splatfacto's step-keyed schedule `1 / scale` times faster (scale 1: as configured)."""
+        cfg = self.config
+        self.clock_scale = float(scale)
+        strategy = self.strategy
+        strategy.refine_start_iter = self.clocked(cfg.warmup_length)
+        strategy.refine_every = self.clocked(cfg.refine_every)
+        strategy.reset_every = self.clocked(cfg.reset_alpha_every * cfg.refine_every)
+        strategy.refine_scale2d_stop_iter = self.clocked(cfg.stop_screen_size_at)
+        strategy.pause_refine_after_reset = self.num_train_data + strategy.refine_every
+        strategy.refine_stop_iter = max(self.clocked(cfg.stop_split_at), int(self.refine_until))
+
+    def _get_downscale_factor(self) -> int:
+        # splatfacto's rule with the resolution schedule on this model's clock
+        if self.training:
+            return 2 ** max(self.config.num_downscales - self.step // self.clocked(self.config.resolution_schedule), 0)
+        return 1
 
     @contextlib.contextmanager
     def eval_mode(self) -> Iterator[HpgsSplatfactoModel]:
@@ -198,7 +226,7 @@ class HpgsSplatfactoModel(SplatfactoModel):
         """Keep splatfacto's densification (split, duplicate, cull, periodic opacity reset) running until trainer
         step `until_step`, even past stop-split-at. Returns the model step it now stops at."""
         self.refine_until = max(int(self.refine_until), int(until_step) - int(self.step_offset))
-        self.strategy.refine_stop_iter = max(int(self.config.stop_split_at), self.refine_until)
+        self.strategy.refine_stop_iter = max(self.clocked(self.config.stop_split_at), self.refine_until)
         return int(self.strategy.refine_stop_iter)
 
     @torch.no_grad()
@@ -315,13 +343,14 @@ class HpgsSplatfactoModel(SplatfactoModel):
         for optimizer in optimizers.values():
             optimizer.state = defaultdict(dict)  # fresh Adam moments and step counts, as at step 0
         self.strategy_state = self.strategy.initialize_state(scene_scale=1.0)
-        self.refine_until, self.strategy.refine_stop_iter = 0, int(self.config.stop_split_at)
+        self.refine_until, self.strategy.refine_stop_iter = 0, self.clocked(self.config.stop_split_at)
         self.step_offset = int(step)
         self.step = 0
 
     def get_extra_state(self) -> Dict[str, Any]:
         # Plain ints and tensors only, so checkpoints load with torch.load(weights_only=True).
-        state: Dict[str, Any] = {"step_offset": int(self.step_offset), "refine_until": int(self.refine_until)}
+        state: Dict[str, Any] = {"step_offset": int(self.step_offset), "refine_until": int(self.refine_until),
+                                 "clock_scale": float(self.clock_scale)}
         if self.keep_initial_in_checkpoint:
             state["initial_gaussians"] = dict(self.initial_gaussians)
         # The densification strategy's running statistics (gradient sums, visibility counts since the last
@@ -331,6 +360,8 @@ class HpgsSplatfactoModel(SplatfactoModel):
 
     def set_extra_state(self, state: Dict[str, Any]) -> None:
         self.step_offset = int(state.get("step_offset", 0))
+        if float(state.get("clock_scale", 1.0)) != 1.0:
+            self.set_clock_scale(float(state["clock_scale"]))
         if state.get("refine_until"):
             self.extend_refinement(int(state["refine_until"]) + self.step_offset)
         if "strategy_state" in state:

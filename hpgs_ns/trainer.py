@@ -18,6 +18,7 @@ from the training process: it saves `ns-eval`'s ~15 s of start-up per run, which
 
 from __future__ import annotations
 
+import copy
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -45,8 +46,13 @@ class HpgsTrainerConfig(TrainerConfig):
     _target: Type = field(default_factory=lambda: HpgsTrainer)
     final_eval_json: Optional[Path] = None
     """If set, evaluate the test views once training ends and write `ns-eval`'s JSON here."""
+    schedules_follow_steps: bool = True
+    """Size every learning-rate schedule (its decay to the final rate) to `--max-num-iterations`, whatever
+    `--optimizers.*.scheduler.max-steps` says: a 20000-step run otherwise trains its last 5000 steps, and every view
+    added in them, at the floor rate of the 15000-step default. False: the schedules' own max-steps (hpgs-ns <= 0.3)."""
 
     def __post_init__(self) -> None:
+        follow_run_length(self)
         # tyro builds this config while it parses the command line: a --data that names a file or nothing is a
         # one-line error before nerfstudio prints anything or makes a run folder. (A config.yml skips __init__.)
         if self.data is not None:
@@ -66,6 +72,21 @@ class HpgsTrainerConfig(TrainerConfig):
                       f"the full config: {self.get_base_dir() / 'config.yml'}", soft_wrap=True)
 
 
+def follow_run_length(config: TrainerConfig) -> None:
+    """`schedules_follow_steps`: every scheduler's max-steps set to the run's total steps (on a copy of the optimizer
+    configs, which tyro shares with the method's default config). Runs at parse time, so config.yml shows the
+    schedule that trains, and again when the trainer starts (configs built in Python may change the steps after)."""
+    # vars(): a config.yml of hpgs-ns <= 0.3 has no such field and keeps the schedule it trained with.
+    if not vars(config).get("schedules_follow_steps", False) or config.max_num_iterations is None:
+        return
+    optimizers = copy.deepcopy(config.optimizers)
+    for groups in optimizers.values():
+        scheduler = groups.get("scheduler") if isinstance(groups, dict) else None
+        if scheduler is not None and hasattr(scheduler, "max_steps"):
+            scheduler.max_steps = int(config.max_num_iterations)
+    config.optimizers = optimizers
+
+
 class HpgsTrainer(Trainer):
     """nerfstudio's Trainer whose resumed runs end at the configured total step count."""
 
@@ -74,6 +95,7 @@ class HpgsTrainer(Trainer):
     def __init__(self, config: HpgsTrainerConfig, local_rank: int = 0, world_size: int = 1) -> None:
         if upgrade_pipeline_config(config):
             CONSOLE.print("config.yml of hpgs-ns 0.1: its pipeline is now the hpgs pipeline (selection rounds run)")
+        follow_run_length(config)  # before set-up builds the schedulers; a resume keeps the total step count
         super().__init__(config, local_rank, world_size)
         self.end_step = int(config.max_num_iterations)
         """The run's last step + 1, counted from step 0 (`max_num_iterations` is rewritten on resume)."""

@@ -10,7 +10,7 @@ Each mechanism below gives the views that arrive late some of what the early one
 from __future__ import annotations
 
 from dataclasses import dataclass, fields
-from typing import Dict, Iterable
+from typing import Dict, Iterable, Tuple
 
 from nerfstudio.utils.rich_utils import CONSOLE
 
@@ -35,8 +35,19 @@ class AfterAddConfig:
     lr_rewind: int = 0
     """Rewind the learning-rate schedules (the means' decay, the camera optimizer's) by this many steps at each add,
     so the Gaussians can still move to fit the new view. 0: the schedules run from step 0 untouched."""
+    restart_at_views: Tuple[int, ...] = ()
+    """Start the splat over when a round brings the number of training views to each of these counts (e.g. 8 16):
+    the Gaussians go back to their step-0 state, and the learning-rate schedules and splatfacto's step-keyed
+    schedule (densification, opacity resets, SH degree, resolution) run again, squeezed into the steps left. What
+    the first few views built from too little evidence (floaters in front of views that came later) is dropped;
+    the views then train together, as they would from step 0. Empty: never (the other after-add options run instead
+    at those rounds when set)."""
 
     def __post_init__(self) -> None:
+        self.restart_at_views = tuple(int(n) for n in self.restart_at_views)
+        if any(n < 1 for n in self.restart_at_views):
+            raise AfterAddError(f"--pipeline.selection.after-add.restart-at-views {' '.join(map(str, self.restart_at_views))}: "
+                                "view counts must be >= 1")
         for name in ("refine_steps", "lr_rewind"):
             value = getattr(self, name)
             if not isinstance(value, int) or value < 0:
@@ -45,11 +56,18 @@ class AfterAddConfig:
 
     @property
     def enabled(self) -> bool:
-        return bool(self.refine_steps or self.reset_opacity or self.lr_rewind)
+        return bool(self.refine_steps or self.reset_opacity or self.lr_rewind or self.restart_at_views)
+
+    def restarts_at(self, views_before: int, views_after: int) -> bool:
+        """Whether a round that took the training views from `views_before` to `views_after` restarts the splat."""
+        return any(views_before < n <= views_after for n in self.restart_at_views)
 
     def describe(self) -> str:
         """The options that are on, as flags (for the log and the start-up line)."""
-        on = [f"{f.name.replace('_', '-')} {getattr(self, f.name)}" for f in fields(self) if getattr(self, f.name)]
+        def words(value) -> str:
+            return " ".join(map(str, value)) if isinstance(value, tuple) else str(value)
+
+        on = [f"{f.name.replace('_', '-')} {words(getattr(self, f.name))}" for f in fields(self) if getattr(self, f.name)]
         return ", ".join(on) if on else "off"
 
 

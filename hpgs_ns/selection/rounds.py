@@ -140,16 +140,20 @@ class SelectionRounds:
                 what = ("no selection rounds will run" if count == 0
                         else f"only {count} of {self.config.max_rounds} selection rounds will run")
                 CONSOLE.print(f"[yellow]{what}: {why}", soft_wrap=True)
-        if self.config.reset_after_add:
+        if self.config.reset_after_add or self.config.after_add.restart_at_views:
             self.model.keep_initial_for_resets()
 
         def before_iteration(step: int) -> None:
             if step == first:
                 self.write_log()
             if self.is_round_step(step):
+                before = len(self.datamanager.active)
                 self.run_round(step)
                 if self.config.reset_after_add:
                     self.reset_model(step, attrs.optimizers)
+                elif self.config.after_add.restarts_at(before, len(self.datamanager.active)):
+                    self.reset_model(step, attrs.optimizers, end=end)
+                    self.write_log()
                 elif self.config.after_add.enabled and attrs.optimizers is not None:
                     self.datamanager.history[-1].after_add = apply_after_add(self.config.after_add, self.model, attrs.optimizers, step)
                     self.write_log()
@@ -230,14 +234,20 @@ class SelectionRounds:
             listener(record)
         return selection
 
-    def reset_model(self, step: int, optimizers) -> None:
-        """Reset-after-add: the model back to its step-0 state and every schedule restarted at `step`."""
+    def reset_model(self, step: int, optimizers, end: Optional[int] = None) -> None:
+        """The model back to its step-0 state and every schedule restarted at `step` (reset-after-add); with `end`
+        (after-add restart-at-views), the schedules squeezed into the steps from `step` to `end`."""
         model = self.model
         if optimizers is None or not hasattr(model, "reset_to_initial"):
             raise RoundError("reset-after-add needs the hpgs model and the trainer's optimizers")
         before = model.num_points
         model.reset_to_initial(step, optimizers.optimizers)
-        restart_schedules(optimizers)
+        if end is None:
+            restart_schedules(optimizers)
+        else:
+            left = max(int(end) - int(step), 1)
+            model.set_clock_scale(left / max(int(end), 1))
+            restart_schedules(optimizers, span=left)
         record = self.datamanager.history[-1]
         record.reset = True
         record.num_gaussians_before_reset, record.num_gaussians_after_reset = int(before), int(model.num_points)

@@ -1,0 +1,126 @@
+"""`--pipeline.selection.after-add.restart-at-views` and `--schedules-follow-steps` on the tiny scene (CPU rasterizer).
+
+6 initial views, one added at steps 30 and 50 of 80; restart-at-views 7: the round at step 30 (6 -> 7 views) starts
+the splat over with 50 of the 80 steps left, so every schedule runs 80/50 = 1.6 times faster from there; the round at
+step 50 (7 -> 8) does not restart."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import torch
+from conftest import run_training, short_config
+
+from hpgs_ns.schedules import DecayMultiplier
+from hpgs_ns.selection.after_add import AfterAddConfig, AfterAddError
+
+RESTART, SECOND, TOTAL = 30, 50, 80
+LEFT = TOTAL - RESTART
+
+
+@pytest.fixture(scope="module")
+def run(tiny_scene, tmp_path_factory):
+    from nerfstudio.engine.trainer import Trainer
+
+    cfg = short_config(tiny_scene, tmp_path_factory.mktemp("restart"), steps=TOTAL, select_at=(RESTART, SECOND),
+                       rounds=2, selector="random")
+    model = cfg.pipeline.model
+    model.warmup_length, model.refine_every, model.reset_alpha_every, model.stop_split_at = 10, 10, 100, 60
+    cfg.pipeline.selection.after_add = AfterAddConfig(restart_at_views=(7,))
+    seen: dict = {}
+    original = Trainer.train_iteration
+
+    def spy(self, step):
+        m = self.pipeline.model
+        seen[step] = {"num_points": m.num_points, "lr": self.optimizers.optimizers["means"].param_groups[0]["lr"],
+                      "model_step": m.step, "refine_every": m.strategy.refine_every,
+                      "refine_stop": m.strategy.refine_stop_iter, "sh": m.active_sh_degree,
+                      "means": float(m.gauss_params["means"].detach().double().sum())}
+        return original(self, step)
+
+    Trainer.train_iteration = spy
+    torch.manual_seed(0)
+    try:
+        trainer = run_training(cfg)
+    finally:
+        Trainer.train_iteration = original
+    return {"seen": seen, "trainer": trainer, "cfg": cfg}
+
+
+def test_schedules_follow_the_run_length(run):
+    trainer = run["trainer"]
+    assert trainer.config.optimizers["means"]["scheduler"].max_steps == TOTAL
+    assert trainer.optimizers.schedulers["means"].lr_lambdas[0].max_steps == TOTAL
+    # the method's default config (shared by every parse) keeps 15000
+    from hpgs_ns.method_config import hpgs
+    assert hpgs.config.optimizers["means"]["scheduler"].max_steps == 15000
+
+
+def test_old_schedule_when_following_is_off():
+    from hpgs_ns.method_config import hpgs_trainer_config
+    from hpgs_ns.trainer import follow_run_length
+
+    cfg = hpgs_trainer_config(300)
+    cfg.max_num_iterations = 20000
+    cfg.schedules_follow_steps = False
+    follow_run_length(cfg)
+    assert cfg.optimizers["means"]["scheduler"].max_steps == 300
+    cfg.schedules_follow_steps = True
+    follow_run_length(cfg)
+    assert cfg.optimizers["means"]["scheduler"].max_steps == 20000
+
+
+def test_the_restart_round_puts_the_initial_gaussians_back(run):
+    seen, model = run["seen"], run["trainer"].pipeline.model
+    initial = model.initial_gaussians["means"]
+    assert seen[RESTART - 1]["means"] != pytest.approx(float(initial.double().sum()), abs=1e-6)  # trained
+    assert seen[RESTART]["means"] == pytest.approx(float(initial.double().sum()), abs=1e-6)
+    assert seen[RESTART]["num_points"] == initial.shape[0]
+    assert seen[RESTART]["model_step"] == 0 and seen[RESTART + 7]["model_step"] == 7
+
+
+def test_the_schedules_run_faster_in_the_steps_left(run):
+    seen, model = run["seen"], run["trainer"].pipeline.model
+    assert model.clock_scale == pytest.approx(LEFT / TOTAL)
+    # refine every 10 steps -> every round(10 x 50/80) = 6; stop-split-at 60 -> 38 model steps after the restart
+    assert seen[RESTART - 1]["refine_every"] == 10 and seen[RESTART]["refine_every"] == 6
+    assert seen[RESTART]["refine_stop"] == 38
+    # SH degree steps every 20 -> 12 model steps: degree 1 at model step 12, as at trainer step 20 before
+    assert seen[RESTART + 11]["sh"] == 0 and seen[RESTART + 12]["sh"] == 1
+    # the means' rate k steps after the restart is the full-run schedule's at k x 80/50
+    base = DecayMultiplier(lr_init=1.6e-4, lr_final=1.6e-6, lr_pre_warmup=1e-8, warmup_steps=0, max_steps=TOTAL)
+    for k in (1, 10, 25, LEFT - 1):
+        assert seen[RESTART + k]["lr"] == pytest.approx(1.6e-4 * base(k * TOTAL / LEFT), rel=1e-6)
+    assert seen[RESTART + 10]["lr"] < seen[10]["lr"]
+
+
+def test_only_the_named_view_count_restarts_and_the_log_says_so(run):
+    seen = run["seen"]
+    assert seen[SECOND]["model_step"] == SECOND - RESTART  # 7 -> 8 views: no restart
+    log = json.loads((Path(run["trainer"].base_dir) / "selected_views.json").read_text())
+    assert [bool(r.get("reset")) for r in log["rounds"]] == [True, False]
+
+
+def test_the_squeezed_clocks_are_in_the_checkpoint(run):
+    trainer = run["trainer"]
+    model = trainer.pipeline.model
+    state = model.get_extra_state()
+    assert state["clock_scale"] == pytest.approx(LEFT / TOTAL) and state["step_offset"] == RESTART
+    model.set_clock_scale(1.0)
+    model.set_extra_state(state)
+    assert model.strategy.refine_every == 6
+    scheduler = trainer.optimizers.schedulers["means"]
+    saved = scheduler.state_dict()
+    scheduler.lr_lambdas[0].speed = 1.0
+    scheduler.load_state_dict(saved)
+    assert scheduler.lr_lambdas[0].speed == pytest.approx(TOTAL / LEFT)
+
+
+def test_restart_counts_must_be_positive():
+    with pytest.raises(AfterAddError, match="restart-at-views 0 8"):
+        AfterAddConfig(restart_at_views=(0, 8))
+    config = AfterAddConfig(restart_at_views=(8, 16))
+    assert config.enabled and config.describe() == "restart-at-views 8 16"
+    assert config.restarts_at(6, 8) and config.restarts_at(15, 17) and not config.restarts_at(8, 9)
