@@ -5,7 +5,8 @@ Everything here reads the per-run results (`results.load_results`) and writes no
 the page, so `hpgs bench --report-only` can rebuild it from any results folder. Which selector beats which is
 decided in `paired.md` only (`stats`: runs paired by scene and seed, intervals over scenes); `table.md`'s means
 and spreads are for reading. Where runs have final-set references (`hpgs bench --final-set`), `table.md` and the
-results page also show each run's schedule cost (`schedule`).
+results page also show each run's schedule cost (`schedule`), and `power.md` how likely the comparisons were to
+find a gain of 0.5 or 1 dB (`bench.power`).
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from pathlib import Path
 from typing import Dict, List, Optional
 
 from hpgs_ns.atomic_write import write_text_atomic
+from hpgs_ns.bench.power import power_section
 from hpgs_ns.bench.report.paired import comparable, comparison_plan, paired_report, verdict_sentence
 from hpgs_ns.bench.report.plots import camera_map, gain_plot, make_plots, stress_plot
 from hpgs_ns.bench.report.schedule import schedule_cost_table
@@ -40,7 +42,8 @@ def write_report(out: Path, results_page: Optional[Path] = None) -> List[Path]:
     schedule = schedule_cost_table(rows, load_final_sets(out))
     table = markdown_table(rows) + (f"\n{SCHEDULE_TITLE}\n\n{schedule}" if schedule else "")
     sections = {"table.md": table, "paired.md": paired_report(rows), "work.md": work_table(rows),
-                "noise.md": noise_table(rows), "throughput.md": throughput_table(rows), "stress.md": stress_table(rows)}
+                "noise.md": noise_table(rows), "throughput.md": throughput_table(rows), "stress.md": stress_table(rows),
+                "power.md": power_section(comparable(rows))}
     for name, text in sections.items():
         if text:
             written.append(write_text_atomic(out / name, text))
@@ -51,11 +54,13 @@ def write_report(out: Path, results_page: Optional[Path] = None) -> List[Path]:
 
 
 def results_section(out: Path, sections: Dict[str, str]) -> str:
-    """The comparisons, the schedule cost (with final-set references), repeat noise and throughput of a results
-    folder, as markdown."""
+    """The comparisons, their power, the schedule cost (with final-set references), repeat noise and throughput of
+    a results folder, as markdown."""
     parts = [f"Built by `hpgs bench --out {out.as_posix()} --report-only`; every comparison pairs runs by scene and seed.", ""]
     if sections["paired.md"]:
         parts += [sections["paired.md"]]
+    if sections.get("power.md"):
+        parts += ["**Power**", "", sections["power.md"]]
     if sections.get("schedule"):  # `schedule.schedule_cost_table`, where runs have final-set references
         parts += [SCHEDULE_TITLE, "", sections["schedule"]]
     for name, title in (("noise.md", "Repeat noise against seed spread"), ("throughput.md", "Throughput")):
