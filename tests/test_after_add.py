@@ -22,7 +22,7 @@ ROUND, STOP, TOTAL, REWIND, WINDOW = 50, 56, 80, 30, 20
 
 def after_add_config(scene: Path, out: Path, steps: int):
     cfg = short_config(scene, out, steps=TOTAL, select_at=(ROUND,), rounds=1, selector="random")
-    cfg.max_num_iterations = steps
+    cfg.max_num_iterations, cfg.schedules_follow_steps = steps, steps == TOTAL  # a stopped run keeps TOTAL's schedule
     model = cfg.pipeline.model
     model.warmup_length, model.refine_every, model.reset_alpha_every, model.stop_split_at = 5, 5, 100, 45
     cfg.pipeline.selection.after_add = AfterAddConfig(refine_steps=WINDOW, reset_opacity=True, lr_rewind=REWIND)

@@ -1,8 +1,9 @@
-"""`--pipeline.selection.after-add.restart-at-views` and `--schedules-follow-steps` on the tiny scene (CPU rasterizer).
+"""`--pipeline.selection.after-add.restart-*` and `--schedules-follow-steps` on the tiny scene (CPU rasterizer).
 
-6 initial views, one added at steps 30 and 50 of 80; restart-at-views 7: the round at step 30 (6 -> 7 views) starts
-the splat over with 50 of the 80 steps left, so every schedule runs 80/50 = 1.6 times faster from there; the round at
-step 50 (7 -> 8) does not restart."""
+A random start (random-init) from 3 initial views, 3 views added at steps 30 and 50 of 80: with the defaults
+(restart-random-starts), the round at step 30 (3 -> 6 views, twice the initial count) starts the splat over with 50
+of the 80 steps left, so every schedule runs 80/50 = 1.6 times faster from there; the round at step 50 (6 -> 9)
+does not restart (the next count is 12)."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ import torch
 from conftest import run_training, short_config
 
 from hpgs_ns.schedules import DecayMultiplier
-from hpgs_ns.selection.after_add import AfterAddConfig, AfterAddError
+from hpgs_ns.selection.after_add import AfterAddConfig, AfterAddError, restarts_at
 
 RESTART, SECOND, TOTAL = 30, 50, 80
 LEFT = TOTAL - RESTART
@@ -25,10 +26,10 @@ def run(tiny_scene, tmp_path_factory):
     from nerfstudio.engine.trainer import Trainer
 
     cfg = short_config(tiny_scene, tmp_path_factory.mktemp("restart"), steps=TOTAL, select_at=(RESTART, SECOND),
-                       rounds=2, selector="random")
+                       rounds=2, initial=3, views_per_round=3, selector="random")
     model = cfg.pipeline.model
     model.warmup_length, model.refine_every, model.reset_alpha_every, model.stop_split_at = 10, 10, 100, 60
-    cfg.pipeline.selection.after_add = AfterAddConfig(restart_at_views=(7,))
+    model.random_init, model.num_random = True, 1500
     seen: dict = {}
     original = Trainer.train_iteration
 
@@ -96,9 +97,10 @@ def test_the_schedules_run_faster_in_the_steps_left(run):
     assert seen[RESTART + 10]["lr"] < seen[10]["lr"]
 
 
-def test_only_the_named_view_count_restarts_and_the_log_says_so(run):
+def test_only_twice_the_initial_count_restarts_and_the_log_says_so(run):
     seen = run["seen"]
-    assert seen[SECOND]["model_step"] == SECOND - RESTART  # 7 -> 8 views: no restart
+    assert run["trainer"].pipeline.model.random_start
+    assert seen[SECOND]["model_step"] == SECOND - RESTART  # 6 -> 9 views: no restart
     log = json.loads((Path(run["trainer"].base_dir) / "selected_views.json").read_text())
     assert [bool(r.get("reset")) for r in log["rounds"]] == [True, False]
 
@@ -122,5 +124,9 @@ def test_restart_counts_must_be_positive():
     with pytest.raises(AfterAddError, match="restart-at-views 0 8"):
         AfterAddConfig(restart_at_views=(0, 8))
     config = AfterAddConfig(restart_at_views=(8, 16))
-    assert config.enabled and config.describe() == "restart-at-views 8 16"
-    assert config.restarts_at(6, 8) and config.restarts_at(15, 17) and not config.restarts_at(8, 9)
+    assert not config.enabled and config.describe() == "restart-at-views 8 16"
+    assert restarts_at((8, 16), 6, 8) and restarts_at((8, 16), 15, 17) and not restarts_at((8, 16), 8, 9)
+    assert config.restart_counts(4, random_start=False) == (8, 16)
+    auto = AfterAddConfig()
+    assert auto.restart_counts(4, random_start=True) == (8, 16) and auto.restart_counts(4, random_start=False) == ()
+    assert auto.describe() == "off" and not AfterAddConfig(restart_random_starts=False).restart_counts(4, True)

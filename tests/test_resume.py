@@ -20,7 +20,9 @@ TOTAL, STOP = 120, 56  # refines at 50, 60, 70, 80, 90; opacity reset at 100; ro
 def resume_config(scene: Path, out: Path, steps: int = TOTAL, **options):
     """Densify every 10 steps from step 50 (35 training views + refine-every pause), reset opacities at 100."""
     cfg = short_config(scene, out, steps=TOTAL, every=40, rounds=2, **{"selector": "random", **options})
-    cfg.max_num_iterations = steps  # the schedules stay sized to TOTAL, as in the uninterrupted run
+    if steps != TOTAL:
+        # A run stopped early (a kill): its schedules are sized to TOTAL, as in the uninterrupted run.
+        cfg.max_num_iterations, cfg.schedules_follow_steps = steps, False
     cfg.final_eval_json = out / "final_eval.json"
     model = cfg.pipeline.model
     model.refine_every, model.warmup_length, model.reset_alpha_every = 10, 20, 10

@@ -40,8 +40,13 @@ class AfterAddConfig:
     the Gaussians go back to their step-0 state, and the learning-rate schedules and splatfacto's step-keyed
     schedule (densification, opacity resets, SH degree, resolution) run again, squeezed into the steps left. What
     the first few views built from too little evidence (floaters in front of views that came later) is dropped;
-    the views then train together, as they would from step 0. Empty: never (the other after-add options run instead
-    at those rounds when set)."""
+    the views then train together, as they would from step 0. Empty: see restart-random-starts. A restart round
+    runs no other after-add option."""
+    restart_random_starts: bool = True
+    """When restart-at-views is empty, a splat that started from random points (no point cloud, random-init or
+    seed-points random) restarts at twice and four times the initial view count (FisherRF's 4 views: at 8 and 16;
+    HP-GS's 20 + 7: never). Random starts lock in what the first views built; seeded ones barely do
+    (docs/active-training.md). False: never restart unless restart-at-views says so."""
 
     def __post_init__(self) -> None:
         self.restart_at_views = tuple(int(n) for n in self.restart_at_views)
@@ -56,19 +61,30 @@ class AfterAddConfig:
 
     @property
     def enabled(self) -> bool:
-        return bool(self.refine_steps or self.reset_opacity or self.lr_rewind or self.restart_at_views)
+        """Whether an option that runs at every add is on (restarts run at their own rounds)."""
+        return bool(self.refine_steps or self.reset_opacity or self.lr_rewind)
 
-    def restarts_at(self, views_before: int, views_after: int) -> bool:
-        """Whether a round that took the training views from `views_before` to `views_after` restarts the splat."""
-        return any(views_before < n <= views_after for n in self.restart_at_views)
+    def restart_counts(self, initial_views: int, random_start: bool) -> Tuple[int, ...]:
+        """The view counts at which the splat restarts, for a run of `initial_views` initial views."""
+        if self.restart_at_views:
+            return self.restart_at_views
+        if self.restart_random_starts and random_start:
+            return (2 * initial_views, 4 * initial_views)
+        return ()
 
     def describe(self) -> str:
-        """The options that are on, as flags (for the log and the start-up line)."""
+        """The options that differ from the defaults, as flags (for the log, the start-up line and the resume check)."""
         def words(value) -> str:
             return " ".join(map(str, value)) if isinstance(value, tuple) else str(value)
 
-        on = [f"{f.name.replace('_', '-')} {words(getattr(self, f.name))}" for f in fields(self) if getattr(self, f.name)]
+        changed = [f for f in fields(self) if getattr(self, f.name) != f.default]
+        on = [f"{f.name.replace('_', '-')} {words(getattr(self, f.name))}" for f in changed]
         return ", ".join(on) if on else "off"
+
+
+def restarts_at(counts: Tuple[int, ...], views_before: int, views_after: int) -> bool:
+    """Whether a round that took the training views from `views_before` to `views_after` crosses a restart count."""
+    return any(views_before < n <= views_after for n in counts)
 
 
 def rewind_schedules(schedulers: Dict[str, object], steps: int, names: Iterable[str] = ()) -> Dict[str, int]:

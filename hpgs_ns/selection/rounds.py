@@ -27,7 +27,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from hpgs_ns.atomic_write import write_json_atomic
 from hpgs_ns.errors import UserError
 from hpgs_ns.schedules import restart_schedules
-from hpgs_ns.selection.after_add import apply_after_add
+from hpgs_ns.selection.after_add import apply_after_add, restarts_at
 from hpgs_ns.selection.candidate_log import CandidateLog
 from hpgs_ns.selection.early_stop import GainModel
 from hpgs_ns.selection.records import RoundRecord, StopRecord
@@ -140,7 +140,15 @@ class SelectionRounds:
                 what = ("no selection rounds will run" if count == 0
                         else f"only {count} of {self.config.max_rounds} selection rounds will run")
                 CONSOLE.print(f"[yellow]{what}: {why}", soft_wrap=True)
-        if self.config.reset_after_add or self.config.after_add.restart_at_views:
+        restart_counts: Tuple[int, ...] = ()
+        if not self.config.reset_after_add:
+            initial = len(self.datamanager.initial_views)
+            restart_counts = self.config.after_add.restart_counts(initial, bool(getattr(self.model, "random_start", False)))
+            restart_counts = tuple(n for n in restart_counts if n > initial)
+            if restart_counts and not self.config.after_add.restart_at_views:
+                CONSOLE.print(f"random start: the splat restarts at {' and '.join(map(str, restart_counts))} views "
+                              "(--pipeline.selection.after-add.restart-random-starts False: never)", soft_wrap=True)
+        if self.config.reset_after_add or restart_counts:
             self.model.keep_initial_for_resets()
 
         def before_iteration(step: int) -> None:
@@ -151,7 +159,7 @@ class SelectionRounds:
                 self.run_round(step)
                 if self.config.reset_after_add:
                     self.reset_model(step, attrs.optimizers)
-                elif self.config.after_add.restarts_at(before, len(self.datamanager.active)):
+                elif restarts_at(restart_counts, before, len(self.datamanager.active)):
                     self.reset_model(step, attrs.optimizers, end=end)
                     self.write_log()
                 elif self.config.after_add.enabled and attrs.optimizers is not None:

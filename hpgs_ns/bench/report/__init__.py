@@ -6,7 +6,8 @@ the page, so `hpgs bench --report-only` can rebuild it from any results folder. 
 decided in `paired.md` only (`stats`: runs paired by scene and seed, intervals over scenes); `table.md`'s means
 and spreads are for reading. Where runs have final-set references (`hpgs bench --final-set`), `table.md` and the
 results page also show each run's schedule cost (`schedule`), and `power.md` how likely the comparisons were to
-find a gain of 0.5 or 1 dB (`bench.power`).
+find a gain of 0.5 or 1 dB (`bench.power`); `hpgs_paper.md` puts protocol-`hpgs` runs beside the HP-GS paper's
+table (`paper_table`).
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from typing import Dict, List, Optional
 from hpgs_ns.atomic_write import write_text_atomic
 from hpgs_ns.bench.power import power_section
 from hpgs_ns.bench.report.paired import comparable, comparison_plan, paired_report, verdict_sentence
+from hpgs_ns.bench.report.paper_table import hpgs_paper_table
 from hpgs_ns.bench.report.plots import camera_map, gain_plot, make_plots, stress_plot
 from hpgs_ns.bench.report.schedule import schedule_cost_table
 from hpgs_ns.bench.report.tables import (
@@ -43,7 +45,7 @@ def write_report(out: Path, results_page: Optional[Path] = None) -> List[Path]:
     table = markdown_table(rows) + (f"\n{SCHEDULE_TITLE}\n\n{schedule}" if schedule else "")
     sections = {"table.md": table, "paired.md": paired_report(rows), "work.md": work_table(rows),
                 "noise.md": noise_table(rows), "throughput.md": throughput_table(rows), "stress.md": stress_table(rows),
-                "power.md": power_section(comparable(rows))}
+                "power.md": power_section(comparable(rows)), "hpgs_paper.md": hpgs_paper_table(rows)}
     for name, text in sections.items():
         if text:
             written.append(write_text_atomic(out / name, text))
@@ -63,6 +65,8 @@ def results_section(out: Path, sections: Dict[str, str]) -> str:
         parts += ["**Power**", "", sections["power.md"]]
     if sections.get("schedule"):  # `schedule.schedule_cost_table`, where runs have final-set references
         parts += [SCHEDULE_TITLE, "", sections["schedule"]]
+    if sections.get("hpgs_paper.md"):
+        parts += ["**HP-GS's table (protocol `hpgs`), beside the paper's**", "", sections["hpgs_paper.md"]]
     for name, title in (("noise.md", "Repeat noise against seed spread"), ("throughput.md", "Throughput")):
         if sections[name]:
             parts += [f"**{title}**", "", sections[name]]
