@@ -5,6 +5,7 @@ PYTHON ?= python3.11
 VENV ?= .venv
 TORCH_SPEC ?= torch==2.14.1 torchvision==0.29.1
 BIN := $(VENV)/bin
+TEST_WORKERS ?= 2
 
 .PHONY: venv demo lint test bench clean
 
@@ -26,8 +27,9 @@ lint: venv
 	$(BIN)/ruff check hpgs_ns tests benchmarks scripts
 
 test: venv lint
-	# One intra-op thread: on 2 cores the pure-PyTorch rasterizer is several times faster than with two.
-	OMP_NUM_THREADS=1 $(BIN)/python -m pytest -q -ra tests
+	# One intra-op thread per test process, one process per core (pytest-xdist; a file's tests stay in one process,
+	# so its module fixtures are built once): on 2 cores the pure-PyTorch rasterizer is fastest that way.
+	OMP_NUM_THREADS=1 $(BIN)/python -m pytest -q -ra -n $(TEST_WORKERS) --dist loadfile tests
 
 clean:
 	rm -rf $(VENV) outputs .pytest_cache
