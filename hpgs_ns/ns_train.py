@@ -35,12 +35,12 @@ def ns_train_command(
     `datamanager`, `model` and `trainer` map option names (with dashes or underscores) to values:
     `{"num-initial-views": 6}` -> `--pipeline.datamanager.num-initial-views 6`; `selection` holds the selection
     loop's options (`{"selector": "fisher"}` -> `--pipeline.selection.selector fisher`); a sequence value gives several
-    words, a bool `True`/`False`. `extra` is appended as given. The dataparser subcommand (default
+    words, a bool `True`/`False`. `extra` is appended as given (then `--vis tensorboard`). The dataparser subcommand (default
     `mipnerf360`) comes last, with its options after it, as tyro reads them: `mipnerf360 --downscale-factor 2`."""
     args = [
         sys.executable, "-m", "nerfstudio.scripts.train", "hpgs",
         "--data", str(data), "--output-dir", str(output_dir), "--experiment-name", experiment,
-        "--timestamp", timestamp, "--vis", "tensorboard",
+        "--timestamp", timestamp,
         "--max-num-iterations", str(steps), "--steps-per-save", str(steps),
         "--steps-per-eval-all-images", str(10 * steps), "--steps-per-eval-image", str(10 * steps),
     ]
@@ -48,7 +48,8 @@ def ns_train_command(
                             ("pipeline.model.", model)):
         for name, value in (options or {}).items():
             args += [f"--{prefix}{name.replace('_', '-')}", *_words(value)]
-    args += list(extra)
+    # `--vis` after the extra arguments: no extra can turn the viewer back on (ns-train would never exit).
+    args += [*extra, "--vis", "tensorboard"]
     if dataparser is not None or dataparser_options:
         args.append(dataparser or "mipnerf360")
         for name, value in (dataparser_options or {}).items():

@@ -176,7 +176,7 @@ def test_strict_init_runs_go_to_their_own_protocol_folder(tiny_scene, tmp_path):
     [job] = bench.jobs()
     assert job.protocol.name == "hpgs-reset-strict"
     args = train_args(bench, job, tmp_path / "_runs")
-    assert args[args.index("--pipeline.datamanager.strict-init") + 1] == "True"
+    assert args[args.index("--pipeline.datamanager.seed-points") + 1] == "colmap-initial"
     assert args[args.index(f"--{SELECTION_PREFIX}reset-after-add") + 1] == "True"
 
 
@@ -334,3 +334,18 @@ def test_the_schedule_cost_table_pairs_each_run_with_its_final_set(tmp_path):
     schedule = table.split("**Schedule cost (final-set − run)**")[1]
     assert "| 30.00 |" not in schedule and "| b | hpgs | fisher |" not in schedule  # the repeat, the stale pair
     assert schedule_cost_table(rows, []) == ""
+
+
+def test_extra_args_cannot_turn_the_viewer_on_and_a_list_option_may_end_them(tmp_path):
+    import tyro
+    from nerfstudio.configs.method_configs import AnnotatedBaseConfigUnion
+
+    from hpgs_ns.ns_train import ns_train_command
+
+    # with the viewer on, ns-train never exits: a sweep would hang on its first run
+    args = ns_train_command(tmp_path, tmp_path / "out", "x", "t", 100, extra=[
+        "--vis", "viewer", "--pipeline.datamanager.initial-view-names", "images/a.jpg", "images/b.jpg"],
+        dataparser="mipnerf360", dataparser_options={"downscale-factor": 2})
+    config = tyro.cli(AnnotatedBaseConfigUnion, args=args[3:])
+    assert list(config.pipeline.datamanager.initial_view_names) == ["images/a.jpg", "images/b.jpg"]
+    assert config.pipeline.datamanager.dataparser.downscale_factor == 2 and config.vis == "tensorboard"

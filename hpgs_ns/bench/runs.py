@@ -102,7 +102,8 @@ class Bench:
     reset_after_add: bool = False
     """Reset the model and its schedules after each added view (FisherRF); results go under `<protocol>-reset`."""
     strict_init: bool = False
-    """Start from seed points seen by two initial views only (needs COLMAP tracks); results go under `<protocol>-strict`."""
+    """Start from seed points seen by two initial views only (`--pipeline.datamanager.seed-points colmap-initial`; needs
+    COLMAP tracks); results go under `<protocol>-strict`."""
     extra_args: str = ""
     """Extra `ns-train hpgs` arguments for every run (quoted). A finished run made with other arguments is an
     error on resume, not skipped: pass another `--out`."""
@@ -364,7 +365,7 @@ def train_args(bench: Bench, job: Job, run_root: Path) -> List[str]:
     if bench.reset_after_add:
         selection["reset-after-add"] = True
     if bench.strict_init:
-        datamanager["strict-init"] = True
+        datamanager["seed-points"] = "colmap-initial"
     if bench.stop_when_gain_below is not None and not is_reference(name):
         selection["stop-when-gain-below"] = bench.stop_when_gain_below
         if bench.gain_model is not None:
