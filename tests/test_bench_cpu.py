@@ -349,3 +349,13 @@ def test_extra_args_cannot_turn_the_viewer_on_and_a_list_option_may_end_them(tmp
     config = tyro.cli(AnnotatedBaseConfigUnion, args=args[3:])
     assert list(config.pipeline.datamanager.initial_view_names) == ["images/a.jpg", "images/b.jpg"]
     assert config.pipeline.datamanager.dataparser.downscale_factor == 2 and config.vis == "tensorboard"
+
+
+def test_max_runs_takes_the_first_runs_and_says_how_many_are_left(tiny_scene, tmp_path, capsys):
+    bench = Bench(scenes=[tiny_scene], out=tmp_path, selectors=["random"], seeds=[0, 1, 2], references=False, max_runs=2)
+    jobs = bench.jobs()
+    assert bench.within_max_runs(jobs, 2, "runs") == jobs[:2]
+    assert "--max-runs 2: 1 runs left; run again to continue" in " ".join(capsys.readouterr().err.split())
+    assert bench.within_max_runs(jobs, 0, "final-set runs") == []  # the runs used the whole budget
+    assert "--max-runs 2: 3 final-set runs left" in " ".join(capsys.readouterr().err.split())
+    assert bench.within_max_runs(jobs, None, "runs") == jobs and bench.within_max_runs(jobs, 5, "runs") == jobs

@@ -208,9 +208,7 @@ class Bench:
         if seen:
             CONSOLE.print(f"[yellow]hpgs bench: the default preference model was trained on renders of {', '.join(seen)}; "
                           "for leave-one-scene-out numbers pass --preference-models benchmarks/results/pref_models")
-        if self.max_runs is not None and len(todo) > self.max_runs:
-            CONSOLE.print(f"[yellow]--max-runs {self.max_runs}: {len(todo) - self.max_runs} runs left; run again to continue")
-            todo = todo[: self.max_runs]
+        todo = self.within_max_runs(todo, self.max_runs, "runs")
         failed: Optional[UserError] = None
         try:
             run_sweep(self, todo, self.cluster)
@@ -224,6 +222,14 @@ class Bench:
             raise UserError(f"{failed}; and {err}") from None
         if failed is not None:
             raise failed
+
+    def within_max_runs(self, todo: List[Job], budget: Optional[int], what: str) -> List[Job]:
+        """The first `budget` jobs of `todo` (None: all), saying how many --max-runs leaves for the next call."""
+        if budget is None or len(todo) <= budget:
+            return todo
+        budget = max(budget, 0)
+        CONSOLE.print(f"[yellow]--max-runs {self.max_runs}: {len(todo) - budget} {what} left; run again to continue")
+        return todo[:budget]
 
     def final_set_jobs(self, scenes: Optional[Sequence[Scene]] = None) -> List[Job]:
         """A `final-set` job for every selector run that --final-set names and whose result exists: its final
@@ -263,11 +269,7 @@ class Bench:
 
     def run_final_sets(self, scenes: Optional[Sequence[Scene]] = None, budget: Optional[int] = None) -> None:
         """Run the final-set jobs left to do (`final_set_todo`), at most `budget` of them (None: all)."""
-        todo = self.final_set_todo(scenes)
-        if budget is not None and len(todo) > budget:
-            CONSOLE.print(f"[yellow]--max-runs {self.max_runs}: {len(todo) - max(budget, 0)} final-set runs left; "
-                          "run again to continue")
-            todo = todo[: max(budget, 0)]
+        todo = self.within_max_runs(self.final_set_todo(scenes), budget, "final-set runs")
         run_sweep(self, todo, self.cluster, what="final-set runs")
 
 
