@@ -316,6 +316,20 @@ class HpgsSplatfactoModel(SplatfactoModel):
                 self.strategy_state[key] = zero_rows(key, value)
         return k
 
+    @torch.no_grad()
+    def replace_gaussians(self, xyz: torch.Tensor, rgb: torch.Tensor, optimizers) -> int:
+        """Drop every Gaussian and start from the points `xyz` [K, 3] with colours `rgb` [K, 3] (uint8), as
+        splatfacto's `populate_modules` starts from seed points (`add_gaussians`); they become the state later
+        resets return to. Returns K."""
+        from gsplat.strategy.ops import remove  # pure PyTorch: safe on a CPU machine
+
+        optimizers = getattr(optimizers, "optimizers", optimizers)
+        everything = torch.ones(self.num_points, dtype=torch.bool, device=self.means.device)
+        remove(params=self.gauss_params, optimizers=optimizers, state=self.strategy_state, mask=everything)
+        added = self.add_gaussians(xyz, rgb, optimizers)
+        self.initial_gaussians = {k: v.detach().cpu().clone() for k, v in self.gauss_params.items()}
+        return added
+
     # ---- reset to step 0 (reset-after-add) -----------------------------------------------------------------
 
     def keep_initial_for_resets(self) -> None:

@@ -147,3 +147,21 @@ def test_strict_init_true_still_means_colmap_initial(tiny_scene, tmp_path, capsy
     everything = setup_trainer(short_config(tiny_scene, tmp_path / "all", steps=1, rounds=0))
     assert strict.pipeline.datamanager.seed_points_mode == "colmap-initial"
     assert strict.pipeline.model.num_points == initial.pipeline.model.num_points < everything.pipeline.model.num_points
+
+
+def test_a_restart_in_active_mode_starts_from_what_the_active_views_triangulate(juicebox, tmp_path, spy):
+    from hpgs_ns.selection.after_add import AfterAddConfig
+
+    cfg = juicebox_config(juicebox, tmp_path / "run", steps=3, select_at=(1,), rounds=1, initial=8, views_per_round=4,
+                          selector="random", seed_points="active")
+    cfg.pipeline.selection.after_add = AfterAddConfig(restart_at_views=(12,))
+    trainer = setup_trainer(cfg)
+    dm, model = trainer.pipeline.datamanager, trainer.pipeline.model
+    seeded = model.num_points
+    trainer.train()
+    record = dm.history[0]
+    count = int(record.after_add["seed_points_restart"])
+    assert record.reset and spy[1] == sorted(dm.active) and len(dm.active) == 12
+    assert count > seeded  # twelve views triangulate more than the first eight
+    assert "seed_points_added" not in record.after_add  # the restart's points are the whole splat
+    assert model.num_points == count == model.initial_gaussians["means"].shape[0]  # no refinement at these steps

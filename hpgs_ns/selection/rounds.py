@@ -157,15 +157,19 @@ class SelectionRounds:
             if self.is_round_step(step):
                 before = len(self.datamanager.active)
                 self.run_round(step)
+                active_seeds = getattr(self.datamanager, "seed_points_mode", None) == "active" and attrs.optimizers is not None
                 if self.config.reset_after_add:
                     self.reset_model(step, attrs.optimizers)
                 elif restarts_at(restart_counts, before, len(self.datamanager.active)):
                     self.reset_model(step, attrs.optimizers, end=end)
+                    if active_seeds:  # start over from what the active views triangulate now
+                        self.reseed_from_active(step, attrs.optimizers)
+                        active_seeds = False
                     self.write_log()
                 elif self.config.after_add.enabled and attrs.optimizers is not None:
                     self.datamanager.history[-1].after_add = apply_after_add(self.config.after_add, self.model, attrs.optimizers, step)
                     self.write_log()
-                if getattr(self.datamanager, "seed_points_mode", None) == "active" and attrs.optimizers is not None:
+                if active_seeds:
                     self.add_seed_points(step, attrs.optimizers)
             elif self.config.eval_each_round and self.is_scheduled(step):
                 # No round here (none left, or a reference run): the test PSNR at the step still says what the
@@ -262,6 +266,24 @@ class SelectionRounds:
         CONSOLE.print(f"reset after add: {before} -> {model.num_points} Gaussians, schedules restart at step {step}")
         writer.put_scalar("selection/num_gaussians_before_reset", before, step)
         self.write_log()
+
+    def reseed_from_active(self, step: int, optimizers) -> int:
+        """`seed-points active` at a restart: the splat starts over from the points the active views triangulate now
+        (not from the initial views' few, or random, points); with too few, from its step-0 Gaussians. Recorded in
+        the round's `after_add` (`seed_points_restart`)."""
+        dm, model = self.datamanager, self.model
+        start = time.perf_counter()
+        xyz, rgb, info = dm.triangulate_active()
+        count = model.replace_gaussians(xyz, rgb, optimizers) if info.ok else 0
+        record = dm.history[-1]
+        record.after_add = {**record.after_add, "seed_points_restart": float(count),
+                            "seed_points_seconds": float(time.perf_counter() - start)}
+        if count:
+            CONSOLE.print(f"restart: the splat starts from {count} points triangulated from {len(dm.active)} views")
+        else:
+            CONSOLE.print(f"[yellow]restart: {info.message or 'no points triangulated'}; the splat starts from its "
+                          "step-0 Gaussians", soft_wrap=True)
+        return count
 
     def add_seed_points(self, step: int, optimizers) -> int:
         """`seed-points active`: triangulate the active views again (the round's new views with the earlier ones,
