@@ -5,6 +5,9 @@ A refactor that should not move any number is checked by running this before and
     python benchmarks/same_numbers.py --out /tmp/before.json --old-spelling   # on a commit before 0.3
     python benchmarks/same_numbers.py --out /tmp/after.json --compare /tmp/before.json
 
+Since 0.4 the schedules follow --max-num-iterations (these runs: 60 steps); 0.3's numbers need
+`--extra-args '--schedules-follow-steps False'`.
+
 `--compare` exits 1 when a selector picked other views or a metric moved by more than `--tolerance`.
 """
 
@@ -13,6 +16,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shlex
 import subprocess
 import sys
 import tempfile
@@ -22,7 +26,7 @@ from pathlib import Path
 SELECTORS = ("random", "farthest", "fisher", "hpgs", "condorcet", "blend")
 
 
-def run_one(scene: Path, out: Path, selector: str, seed: int, steps: int, old_spelling: bool) -> dict:
+def run_one(scene: Path, out: Path, selector: str, seed: int, steps: int, old_spelling: bool, extra=()) -> dict:
     from hpgs_ns.ns_train import ns_train_command
 
     eval_json = out / f"{selector}-eval.json"
@@ -33,7 +37,7 @@ def run_one(scene: Path, out: Path, selector: str, seed: int, steps: int, old_sp
         scene, out, "same", selector, steps, datamanager=datamanager, selection=None if old_spelling else selection,
         model={"rasterizer": "cpu", "warmup-length": 20, "refine-every": 20, "num-downscales": 0,
                "sh-degree-interval": 20},
-        trainer={"final-eval-json": eval_json},
+        trainer={"final-eval-json": eval_json}, extra=list(extra),
     )
     env = dict(os.environ, OMP_NUM_THREADS="1")
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True)
@@ -71,6 +75,8 @@ def main() -> None:
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument("--old-spelling", action="store_true",
                         help="set the selection options as --pipeline.datamanager.* (hpgs-ns 0.2 and older)")
+    parser.add_argument("--extra-args", default="",
+                        help="more ns-train arguments, quoted (e.g. '--schedules-follow-steps False': 0.3's schedules)")
     args = parser.parse_args()
 
     from hpgs_ns.scenes.synthetic import make_scene
@@ -78,7 +84,8 @@ def main() -> None:
     work = Path(tempfile.mkdtemp(prefix="same-numbers-"))
     scene = make_scene(work / "ring", layout="ring", num_cameras=40, width=64, height=48, num_points=1500, seed=0)
     with ThreadPoolExecutor(args.jobs) as pool:
-        futures = {s: pool.submit(run_one, scene, work / "runs", s, args.seed, args.steps, args.old_spelling) for s in args.selectors}
+        futures = {s: pool.submit(run_one, scene, work / "runs", s, args.seed, args.steps, args.old_spelling,
+                                  shlex.split(args.extra_args)) for s in args.selectors}
         results = {s: f.result() for s, f in futures.items()}
     args.out.write_text(json.dumps(results, indent=1))
     for selector, r in results.items():
