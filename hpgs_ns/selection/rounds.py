@@ -263,7 +263,11 @@ class SelectionRounds:
         record = self.datamanager.history[-1]
         record.reset = True
         record.num_gaussians_before_reset, record.num_gaussians_after_reset = int(before), int(model.num_points)
-        CONSOLE.print(f"reset after add: {before} -> {model.num_points} Gaussians, schedules restart at step {step}")
+        if end is None:
+            CONSOLE.print(f"reset after add: {before} -> {model.num_points} Gaussians, schedules restart at step {step}")
+        else:
+            CONSOLE.print(f"restart at {len(self.datamanager.active)} views: {before} -> {model.num_points} Gaussians, "
+                          f"every schedule reruns in the {int(end) - int(step)} steps left")
         writer.put_scalar("selection/num_gaussians_before_reset", before, step)
         self.write_log()
 
