@@ -256,18 +256,17 @@ class SelectionRounds:
         model.reset_to_initial(step, optimizers.optimizers)
         if end is None:
             restart_schedules(optimizers)
+            what = f"reset after add: {before} -> {model.num_points} Gaussians, schedules restart at step {step}"
         else:
             left = max(int(end) - int(step), 1)
             model.set_clock_scale(left / max(int(end), 1))
             restart_schedules(optimizers, span=left)
+            what = (f"restart at {len(self.datamanager.active)} views: {before} -> {model.num_points} Gaussians, "
+                    f"every schedule reruns in the {left} steps left")
         record = self.datamanager.history[-1]
         record.reset = True
         record.num_gaussians_before_reset, record.num_gaussians_after_reset = int(before), int(model.num_points)
-        if end is None:
-            CONSOLE.print(f"reset after add: {before} -> {model.num_points} Gaussians, schedules restart at step {step}")
-        else:
-            CONSOLE.print(f"restart at {len(self.datamanager.active)} views: {before} -> {model.num_points} Gaussians, "
-                          f"every schedule reruns in the {int(end) - int(step)} steps left")
+        CONSOLE.print(what)
         writer.put_scalar("selection/num_gaussians_before_reset", before, step)
         self.write_log()
 
