@@ -158,6 +158,10 @@ class ActiveDatamanager(FullImageDatamanager):
                 "--eval-mode all trains on the test views too, so nothing is withheld for testing; use the dataparser's "
                 "default split (e.g. nerfstudio-data --eval-mode fraction, or interval)"
             )
+        if config.seed_points in ("active", "random") and getattr(config.dataparser, "load_3D_points", False):
+            # these modes drop the capture's points anyway: not reading them also spares the dataparser's
+            # "no seed points: random start" line, which is wrong for `active`
+            config.dataparser.load_3D_points = False
         try:
             super().__init__(config, device=device, test_mode=test_mode, **kwargs)
         except AssertionError as err:  # nerfstudio checks each image's size against its camera's while caching

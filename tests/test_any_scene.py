@@ -158,6 +158,24 @@ def test_splits_without_test_views_or_overlapping_are_one_line_errors(fox, tiny_
         run_training(cfg)
 
 
+def test_active_seed_points_on_a_capture_without_a_ply_say_only_what_they_do(fox, tmp_path, capsys):
+    from hpgs_ns.dataparser import HpgsNerfstudio
+
+    saved_told, HpgsNerfstudio._told = HpgsNerfstudio._told, False  # the "no seed points" line prints once a process
+    try:
+        cfg = short_config(fox, tmp_path, steps=1, rounds=0, initial=8, seed_points="active")
+        cfg.pipeline.datamanager.dataparser = HpgsNerfstudioDataParserConfig(data=fox, downscale_factor=4)
+        trainer = cfg.setup(local_rank=0, world_size=1)
+        trainer.setup()
+    finally:
+        HpgsNerfstudio._told = saved_told
+    out = capsys.readouterr()
+    lines = [line for line in (out.out + out.err).splitlines() if "seed points" in line.lower()]
+    # one line: what was triangulated; not the dataparser's "no seed points: random start" before it
+    assert len(lines) == 1 and lines[0].startswith("seed points: "), lines
+    assert int(lines[0].split()[2]) == trainer.pipeline.model.num_points >= 100
+
+
 def test_strict_init_outside_colmap_is_a_one_line_error(fox, tmp_path):
     cfg = short_config(fox, tmp_path, steps=4, strict_init=True)
     cfg.pipeline.datamanager.dataparser = HpgsNerfstudioDataParserConfig(data=fox, downscale_factor=4)
