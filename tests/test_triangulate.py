@@ -14,9 +14,14 @@ from conftest import require_shared
 from PIL import Image
 
 from hpgs_ns.scenes.triangulate import (
+    COLMAP_DEFAULTS,
+    DEFAULT_SETTINGS,
     TriangulationWorkspace,
     colmap_cam_from_world,
     colmap_camera_model,
+    epipolar_distance,
+    guided_matches,
+    relative_pose,
     seed_points,
     triangulate_views,
     view_pairs,
@@ -63,6 +68,38 @@ def test_a_point_on_a_nerfstudio_ray_projects_back_to_its_pixel_in_colmap(kind, 
         assert (in_camera[:, 2] > 0).all()  # COLMAP's z looks forward
         projected = np.stack([camera.img_from_cam(p) for p in in_camera])
         assert np.abs(projected - pixels.flip(-1).numpy()).max() < 0.05, (model, projected)
+
+
+def test_known_pose_verification_keeps_true_matches_and_drops_a_planted_wrong_one():
+    """The epipolar distance under the known relative pose (lens distortion removed): ~0 px for the projections of
+    one 3D point, large for a match that pairs two different points."""
+    import pycolmap
+
+    cameras = look_at_cameras(8, distortion_params=torch.tensor([[0.05, -0.02, 0.0, 0.0, 0.001, -0.002]] * 8))
+    a, b = 0, 1  # 45 degrees apart on the ring
+    points = np.random.default_rng(0).uniform(-0.6, 0.6, (50, 3))
+    pixels, colmap_cameras = [], []
+    for i in (a, b):
+        model, width, height, params = colmap_camera_model(cameras, i)
+        colmap_cameras.append(pycolmap.Camera(model=model, width=width, height=height, params=params))
+        cam_from_world = pycolmap.Rigid3d(colmap_cam_from_world(cameras.camera_to_worlds[i]))
+        pixels.append(np.stack([colmap_cameras[-1].img_from_cam(cam_from_world * p) for p in points]))
+    wrong = np.argmax(np.abs(pixels[1][:, 1] - pixels[1][0, 1]))  # point 0's pixel in view a with a far-off point's in b
+    points1 = np.concatenate([pixels[0], pixels[0][:1]])
+    points2 = np.concatenate([pixels[1], pixels[1][wrong:wrong + 1]])
+    cam2_from_cam1 = relative_pose(cameras.camera_to_worlds[a], cameras.camera_to_worlds[b])
+    distance = epipolar_distance(*colmap_cameras, cam2_from_cam1, points1, points2)
+    assert distance[:-1].max() < 0.01 and distance[-1] > 20, distance[-1]  # pixels
+    # the matrix form, as guided matching uses it: the diagonal is the true matches
+    every = epipolar_distance(*colmap_cameras, cam2_from_cam1, pixels[0], pixels[1], every_pair=True)
+    assert every.shape == (50, 50) and np.allclose(np.diag(every), distance[:-1], atol=1e-6)
+    # guided matching: only candidates within the band compete, mutual nearest descriptors win
+    rng = np.random.default_rng(1)
+    descriptors = rng.integers(0, 255, (50, 128)).astype(np.uint8)
+    noisy = np.clip(descriptors + rng.integers(-20, 20, (50, 128)), 0, 255).astype(np.uint8)
+    matches = guided_matches(descriptors, noisy, every, max_error=4.0, max_ratio=0.9)
+    assert len(matches) >= 45 and (matches[:, 0] == matches[:, 1]).all()
+    assert len(guided_matches(descriptors, noisy, np.full((50, 50), np.inf), 4.0, 0.9)) == 0  # no band, no match
 
 
 def test_unsupported_camera_types_fail_in_one_line(tmp_path):
@@ -197,6 +234,22 @@ def test_a_later_round_extracts_and_matches_only_its_new_views(juicebox, juicebo
     assert after.ok and after.new_views == 2 and after.pairs_matched == 2 * 6 + 1
     assert after.num_points > before.num_points
     assert abs(after.num_points - juicebox_points[2].num_points) <= 0.05 * juicebox_points[2].num_points  # as one call over all 8
+
+
+def test_known_pose_verification_yields_more_points_than_colmaps_ransac_as_accurate(juicebox, juicebox_points):
+    """The default (matches checked against the known poses, ratio 0.9, 5 inliers a pair) against COLMAP's own
+    two-view RANSAC one keyword away, on juicebox's 8 views: 409 against 316 points here (2 cores)."""
+    from scipy.spatial import cKDTree
+
+    outputs, views = juicebox
+    assert DEFAULT_SETTINGS.verification == "poses" and COLMAP_DEFAULTS.verification == "ransac"
+    xyz, _, info = juicebox_points
+    old_xyz, _, old = triangulate_views(outputs.cameras, outputs.image_filenames, views, settings=COLMAP_DEFAULTS)
+    assert old.ok and info.num_points >= 1.15 * old.num_points, (info.num_points, old.num_points)
+    reference = outputs.metadata["points3D_xyz"].numpy()
+    tree, extent = cKDTree(reference), scene_extent(reference)
+    new_error, old_error = (float(np.median(tree.query(p.numpy())[0])) / extent for p in (xyz, old_xyz))
+    assert new_error < 0.01 and new_error < 1.5 * old_error, (new_error, old_error)
 
 
 def test_a_nerfstudio_data_capture_with_distortion_and_no_colmap_model():

@@ -3,9 +3,11 @@
 splatfacto's seed points usually come from the capture's COLMAP model, which was built from every photo,
 test photos included (a leak), and which a capture in progress does not have at all (nerfstudio-data, Blender).
 Here pycolmap extracts SIFT features (CPU) from the given views, matches them among themselves (every pair up
-to `max_exhaustive` views, else each view with its nearest views by camera centre), and triangulates with the
-poses held fixed, so the points are in the cameras' own frame: nerfstudio's normalised (auto-oriented, scaled)
-frame, the frame of `cameras.camera_to_worlds`, in its units.
+to `max_exhaustive` views, else each view with its nearest views by camera centre), keeps the matches that agree
+with the KNOWN relative pose of the pair (within a few pixels of their epipolar lines; COLMAP's own two-view
+RANSAC, which rejects wide-baseline pairs with few matches, is `settings=COLMAP_DEFAULTS`), and triangulates with
+the poses held fixed, so the points are in the cameras' own frame: nerfstudio's normalised (auto-oriented,
+scaled) frame, the frame of `cameras.camera_to_worlds`, in its units.
 
 One call (a temporary folder, removed at the end):
 
@@ -49,6 +51,47 @@ DEFAULT_MAX_EXHAUSTIVE = 30  # 30 views = 435 pairs; beyond, each view is matche
 DEFAULT_NEIGHBOURS = 12
 
 
+@dataclass(frozen=True)
+class TriangulationSettings:
+    """How features are found, matched and verified. `COLMAP_DEFAULTS`: COLMAP's own (SIFT's defaults, two-view
+    geometry by RANSAC on an essential/fundamental matrix, at least 15 inliers a pair).
+
+    upscale_to: photos whose longer side is below this (pixels) are upsampled to it before SIFT (0: never).
+    peak_threshold: SIFT's peak threshold (COLMAP's default 0.02 / 3; lower finds more, weaker features).
+    max_num_features: SIFT features kept per image.
+    max_ratio: the matcher's ratio test (second-nearest over nearest descriptor distance).
+    verification: "ransac": COLMAP's two-view estimation decides each pair's inlier matches; "poses": the
+        matches are checked against the KNOWN relative pose instead (no estimation): a match is kept when both
+        its keypoints lie within `max_epipolar_error` pixels of the other's epipolar line; "guided": the known
+        pose guides the matching itself: each feature is matched (ratio test, cross-check) only among the features
+        of the other view within `max_epipolar_error` pixels of its epipolar line, so wide-baseline pairs whose
+        matches fail the ratio test against the whole image still match.
+    max_epipolar_error: pixels at the size SIFT saw ("poses" and "guided").
+    min_num_inliers: a pair needs at least this many inlier matches to be used (RANSAC's minimum and the
+        triangulator's `min_num_matches`).
+    """
+
+    upscale_to: int = 0
+    peak_threshold: float = 0.02 / 3
+    max_num_features: int = 8192
+    max_ratio: float = 0.8
+    verification: str = "ransac"
+    max_epipolar_error: float = 4.0
+    min_num_inliers: int = 15
+
+    def __post_init__(self) -> None:
+        if self.verification not in ("ransac", "poses", "guided"):
+            raise ValueError(f"verification {self.verification!r}: 'ransac', 'poses' or 'guided'")
+
+
+COLMAP_DEFAULTS = TriangulationSettings()
+# Chosen on the tuning scenes (benchmarks/triangulation_yield.py, docs/active-training.md "Triangulation yield"):
+# matches checked against the known poses, a looser ratio test and 5 inliers a pair: 665 points over tune6 at 4 and 8
+# FisherRF views against 360 for COLMAP_DEFAULTS, medians within 1% of the extent, the same seconds a call.
+KNOWN_POSES = TriangulationSettings(max_ratio=0.9, verification="poses", min_num_inliers=5)
+DEFAULT_SETTINGS = KNOWN_POSES
+
+
 class TriangulationError(UserError):
     """Triangulation could not run (pycolmap missing or failing, an unreadable image, a camera type COLMAP lacks).
     `triangulate_views` returns it as `info.message` instead of raising; `TriangulationInfo.raise_if_failed` raises."""
@@ -87,6 +130,7 @@ def triangulate_views(
     two_view_tracks: bool = True,
     num_threads: int = -1,
     existing: Optional[TriangulationWorkspace] = None,
+    settings: TriangulationSettings = DEFAULT_SETTINGS,
 ) -> Tuple[torch.Tensor, torch.Tensor, TriangulationInfo]:
     """Triangulate points from the views `indices` of `cameras` at their known poses.
 
@@ -102,6 +146,7 @@ def triangulate_views(
     num_threads: pycolmap's threads for extraction and matching (-1: all cores).
     existing: a `TriangulationWorkspace` kept between calls (features and matches of earlier views are reused);
         None: a temporary one for this call.
+    settings: features, matching and verification (`TriangulationSettings`); `COLMAP_DEFAULTS` for COLMAP's own.
 
     Returns (xyz [N, 3] float32, rgb [N, 3] uint8, info): CPU tensors in the frame and units of
     `cameras.camera_to_worlds`, as the dataparsers' `metadata["points3D_xyz"]` / `["points3D_rgb"]`.
@@ -117,7 +162,7 @@ def triangulate_views(
     try:
         xyz, rgb = workspace.triangulate(
             cameras, image_paths, views, info, max_image_size=max_image_size, max_exhaustive=max_exhaustive,
-            neighbours=neighbours, two_view_tracks=two_view_tracks, num_threads=num_threads,
+            neighbours=neighbours, two_view_tracks=two_view_tracks, num_threads=num_threads, settings=settings,
         )
     except TriangulationError as err:
         info.failed, info.message = True, f"triangulation of {len(views)} views failed: {err}"
@@ -165,6 +210,7 @@ class TriangulationWorkspace:
         self._views: Dict[int, tuple] = {}  # view -> (photo path, bytes, mtime, max_image_size)
         self._sizes: Dict[int, Tuple[int, int]] = {}  # view -> (width, height) of its image written here
         self._matched: set = set()  # pairs of views matched already
+        self._settings: Optional[TriangulationSettings] = None  # those the kept features and matches were made with
 
     def __enter__(self) -> TriangulationWorkspace:
         return self
@@ -179,7 +225,7 @@ class TriangulationWorkspace:
         """Forget everything (after a failure, or when earlier views changed)."""
         for child in self.root.iterdir() if self.root.is_dir() else []:
             shutil.rmtree(child) if child.is_dir() else child.unlink()
-        self._views, self._sizes, self._matched = {}, {}, set()
+        self._views, self._sizes, self._matched, self._settings = {}, {}, set(), None
 
     @property
     def images(self) -> Path:
@@ -190,7 +236,8 @@ class TriangulationWorkspace:
         return self.root / "database.db"
 
     def triangulate(self, cameras, image_paths, views: List[int], info: TriangulationInfo, *, max_image_size: int,
-                    max_exhaustive: int, neighbours: int, two_view_tracks: bool, num_threads: int) -> Tuple[np.ndarray, np.ndarray]:
+                    max_exhaustive: int, neighbours: int, two_view_tracks: bool, num_threads: int,
+                    settings: TriangulationSettings = DEFAULT_SETTINGS) -> Tuple[np.ndarray, np.ndarray]:
         if len(views) < 2:
             raise TriangulationError(f"{len(views)} view(s) given; triangulation needs at least 2")
         bad = [i for i in views if not 0 <= i < len(cameras)]
@@ -203,13 +250,16 @@ class TriangulationWorkspace:
         models = {i: colmap_camera_model(cameras, i) for i in views}
 
         keys = {i: _file_key(Path(image_paths[i]), max_image_size) for i in views}
-        if any(self._views.get(i, keys[i]) != keys[i] for i in views) or set(self._views) - set(views):
-            self.reset()  # a photo changed or a view left: start over rather than mix stale features in
+        if any(self._views.get(i, keys[i]) != keys[i] for i in views) or set(self._views) - set(views) or \
+                (self._settings is not None and self._settings != settings):
+            self.reset()  # a photo, the settings changed or a view left: start over rather than mix stale features in
+        self._settings = settings
         self.images.mkdir(parents=True, exist_ok=True)
         new = [i for i in views if i not in self._views]
         tick = time.perf_counter()
         for i in new:
-            self._sizes[i] = _write_view_image(Path(image_paths[i]), self.images / view_file(i), max_image_size, models[i][1:3])
+            self._sizes[i] = _write_view_image(Path(image_paths[i]), self.images / view_file(i), max_image_size, models[i][1:3],
+                                               upscale_to=settings.upscale_to)
         info.seconds["images"] = time.perf_counter() - tick
 
         with _quiet_colmap(pycolmap):
@@ -217,7 +267,9 @@ class TriangulationWorkspace:
             if new:
                 extraction = pycolmap.FeatureExtractionOptions()
                 extraction.num_threads = num_threads
-                extraction.max_image_size = max_image_size
+                extraction.max_image_size = max(max_image_size, settings.upscale_to)
+                extraction.sift.peak_threshold = settings.peak_threshold
+                extraction.sift.max_num_features = settings.max_num_features
                 pycolmap.extract_features(self.database, self.images, image_names=[view_file(i) for i in new],
                                           camera_mode=pycolmap.CameraMode.PER_IMAGE, extraction_options=extraction,
                                           device=pycolmap.Device.cpu)
@@ -233,17 +285,28 @@ class TriangulationWorkspace:
 
             tick = time.perf_counter()
             pairs = [p for p in view_pairs(cameras, views, max_exhaustive, neighbours) if p not in self._matched]
-            if pairs:
+            if pairs and settings.verification == "guided":
+                self._match_guided(pycolmap, cameras, pairs, db_images, settings)
+                self._matched.update(pairs)
+            elif pairs:
                 pair_file = self.root / "pairs.txt"
                 pair_file.write_text("".join(f"{view_file(a)} {view_file(b)}\n" for a, b in pairs))
                 matching = pycolmap.FeatureMatchingOptions()
                 matching.num_threads = num_threads
+                matching.sift.max_ratio = settings.max_ratio
+                matching.skip_geometric_verification = settings.verification == "poses"
+                verification = pycolmap.TwoViewGeometryOptions()
+                verification.min_num_inliers = settings.min_num_inliers
                 pycolmap.match_image_pairs(self.database, matching_options=matching,
                                            pairing_options=pycolmap.ImportedPairingOptions(match_list_path=str(pair_file)),
-                                           device=pycolmap.Device.cpu)
+                                           verification_options=verification, device=pycolmap.Device.cpu)
+                if settings.verification == "poses":
+                    info.seconds["match"] = time.perf_counter() - tick
+                    self._verify_with_poses(pycolmap, cameras, pairs, db_images, settings)
+                    info.seconds["verify"] = time.perf_counter() - tick - info.seconds["match"]
                 self._matched.update(pairs)
             info.pairs_matched = len(pairs)
-            info.seconds["match"] = time.perf_counter() - tick
+            info.seconds["match"] = time.perf_counter() - tick - info.seconds.get("verify", 0.0)
 
             tick = time.perf_counter()
             reconstruction = pycolmap.Reconstruction()
@@ -254,6 +317,7 @@ class TriangulationWorkspace:
                 reconstruction.add_image_with_trivial_frame(image, pycolmap.Rigid3d(colmap_cam_from_world(cameras.camera_to_worlds[i])))
             options = pycolmap.IncrementalPipelineOptions()
             options.triangulation.ignore_two_view_tracks = not two_view_tracks
+            options.min_num_matches = settings.min_num_inliers
             options.num_threads = num_threads
             out = self.root / "triangulated"
             shutil.rmtree(out, ignore_errors=True)
@@ -269,6 +333,61 @@ class TriangulationWorkspace:
             info.mean_track_length = float(result.compute_mean_track_length())
             info.mean_reprojection_error = float(result.compute_mean_reprojection_error())
         return xyz[keep], rgb[keep]
+
+    def _match_guided(self, pycolmap, cameras, pairs, db_images, settings: TriangulationSettings) -> None:
+        """Match each pair among the features near their epipolar lines under the KNOWN relative pose
+        (`guided_matches`); the matches are written both as the pair's matches and as its inlier matches."""
+        database = pycolmap.Database.open(self.database)
+        features: Dict[int, Tuple[np.ndarray, np.ndarray]] = {}
+
+        def read(image_id):
+            if image_id not in features:
+                points = database.read_keypoints(image_id)[:, :2].astype(np.float64)
+                features[image_id] = (points, np.asarray(database.read_descriptors(image_id).data))
+            return features[image_id]
+
+        try:
+            for a, b in pairs:
+                (id1, camera1), (id2, camera2) = db_images[view_file(a)], db_images[view_file(b)]
+                (points1, descriptors1), (points2, descriptors2) = read(id1), read(id2)
+                cam2_from_cam1 = relative_pose(cameras.camera_to_worlds[a], cameras.camera_to_worlds[b])
+                distance = epipolar_distance(camera1, camera2, cam2_from_cam1, points1, points2, every_pair=True)
+                matches = guided_matches(descriptors1, descriptors2, distance, settings.max_epipolar_error, settings.max_ratio)
+                database.write_matches(id1, id2, matches)
+                if len(matches) >= settings.min_num_inliers:
+                    database.write_two_view_geometry(id1, id2, pycolmap.TwoViewGeometry(
+                        config=pycolmap.TwoViewGeometryConfiguration.CALIBRATED, inlier_matches=matches,
+                        E=essential_matrix(cam2_from_cam1), cam2_from_cam1=pycolmap.Rigid3d(cam2_from_cam1)))
+        finally:
+            database.close()
+
+    def _verify_with_poses(self, pycolmap, cameras, pairs, db_images, settings: TriangulationSettings) -> None:
+        """Each pair's two-view geometry from its KNOWN relative pose: the matches within
+        `settings.max_epipolar_error` pixels of their epipolar lines (both ways), written as the pair's inlier
+        matches when there are at least `settings.min_num_inliers`, instead of COLMAP's RANSAC estimate."""
+        database = pycolmap.Database.open(self.database)
+        try:
+            for a, b in pairs:
+                (id1, camera1), (id2, camera2) = db_images[view_file(a)], db_images[view_file(b)]
+                matches = database.read_matches(id1, id2)
+                if len(matches) == 0:
+                    continue
+                cam2_from_cam1 = relative_pose(cameras.camera_to_worlds[a], cameras.camera_to_worlds[b])
+                points1 = database.read_keypoints(id1)[matches[:, 0], :2].astype(np.float64)
+                points2 = database.read_keypoints(id2)[matches[:, 1], :2].astype(np.float64)
+                error = epipolar_distance(camera1, camera2, cam2_from_cam1, points1, points2)
+                inliers = matches[error < settings.max_epipolar_error]
+                if len(inliers) < settings.min_num_inliers:
+                    continue
+                geometry = pycolmap.TwoViewGeometry(
+                    config=pycolmap.TwoViewGeometryConfiguration.CALIBRATED, inlier_matches=inliers.astype(np.uint32),
+                    E=essential_matrix(cam2_from_cam1), cam2_from_cam1=pycolmap.Rigid3d(cam2_from_cam1))
+                if database.exists_two_view_geometry(id1, id2):
+                    database.update_two_view_geometry(id1, id2, geometry)
+                else:
+                    database.write_two_view_geometry(id1, id2, geometry)
+        finally:
+            database.close()
 
     def _set_cameras(self, pycolmap, models) -> Dict[str, Tuple[int, object]]:
         """Give each view's database camera its known intrinsics at the downscaled size (extraction made a guess);
@@ -336,6 +455,79 @@ def colmap_cam_from_world(camera_to_world) -> np.ndarray:
     return np.concatenate([rotation_cw, (-rotation_cw @ c2w[:, 3])[:, None]], axis=1)
 
 
+def relative_pose(camera_to_world1, camera_to_world2) -> np.ndarray:
+    """[3, 4] COLMAP cam2_from_cam1 (x right, y down, z forward) between two nerfstudio camera-to-worlds [3, 4]."""
+    pose1, pose2 = colmap_cam_from_world(camera_to_world1), colmap_cam_from_world(camera_to_world2)
+    rotation = pose2[:, :3] @ pose1[:, :3].T
+    return np.concatenate([rotation, (pose2[:, 3] - rotation @ pose1[:, 3])[:, None]], axis=1)
+
+
+def essential_matrix(cam2_from_cam1: np.ndarray) -> np.ndarray:
+    """E = [t]x R: x2^T E x1 = 0 for normalised (undistorted, unit focal) points x1, x2 of one 3D point."""
+    t = cam2_from_cam1[:, 3]
+    cross = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
+    return cross @ cam2_from_cam1[:, :3]
+
+
+def epipolar_distance(camera1, camera2, cam2_from_cam1: np.ndarray, points1: np.ndarray, points2: np.ndarray,
+                      every_pair: bool = False) -> np.ndarray:
+    """[M] for matched pixels points1 [M, 2] (camera1) and points2 [M, 2] (camera2), pycolmap `Camera`s: the larger
+    of the two distances, in pixels, between a point and the epipolar line of its match under the known relative
+    pose (lens distortion removed first; a normalised distance times the camera's mean focal length). Points
+    that cannot be undistorted are infinitely far. every_pair: [M1, M2] for every point of points1 [M1, 2] with
+    every point of points2 [M2, 2] instead."""
+    def normalised(camera, points):
+        out = np.asarray(camera.cam_from_img(np.asarray(points, dtype=np.float64).reshape(-1, 2)), dtype=np.float64).reshape(-1, 2)
+        return np.concatenate([out, np.ones((len(out), 1))], axis=1)
+
+    x1, x2 = normalised(camera1, points1), normalised(camera2, points2)
+    e = essential_matrix(cam2_from_cam1)
+    line2, line1 = x1 @ e.T, x2 @ e  # epipolar lines in image 2 (of x1) and in image 1 (of x2)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        scale2 = camera2.mean_focal_length() / np.linalg.norm(line2[:, :2], axis=1)
+        scale1 = camera1.mean_focal_length() / np.linalg.norm(line1[:, :2], axis=1)
+        if every_pair:
+            residual = np.abs(line2 @ x2.T)  # [M1, M2]: x2_j . (E x1_i)
+            distance = np.maximum(residual * scale2[:, None], residual * scale1[None, :])
+        else:
+            residual = np.abs((x2 * line2).sum(1))
+            distance = np.maximum(residual * scale2, residual * scale1)
+    return np.where(np.isfinite(distance), distance, np.inf)
+
+
+def guided_matches(descriptors1: np.ndarray, descriptors2: np.ndarray, distance: np.ndarray, max_error: float,
+                   max_ratio: float, max_descriptor_distance: float = 0.7) -> np.ndarray:
+    """[K, 2] matches (index in 1, index in 2) between SIFT descriptors [M1, 128] and [M2, 128] among the pairs
+    whose epipolar `distance` [M1, M2] (pixels) is below `max_error`: each feature's nearest descriptor among
+    those candidates only, kept when it passes the ratio test against the second nearest candidate (none: passes),
+    is within `max_descriptor_distance` (the angle between the descriptors, radians, as COLMAP's matcher) and is
+    mutual (cross-checked)."""
+    if len(descriptors1) == 0 or len(descriptors2) == 0:
+        return np.zeros((0, 2), dtype=np.uint32)
+    d1 = descriptors1.astype(np.float32)
+    d2 = descriptors2.astype(np.float32)
+    d1 /= np.maximum(np.linalg.norm(d1, axis=1, keepdims=True), 1e-12)
+    d2 /= np.maximum(np.linalg.norm(d2, axis=1, keepdims=True), 1e-12)
+    similarity = d1 @ d2.T
+    similarity[~(distance < max_error)] = -1.0  # outside the epipolar band: never a candidate
+    angle = np.arccos(np.clip(similarity, -1.0, 1.0))
+
+    def best(angles):  # per row: (index of the nearest, its angle, the second nearest's angle)
+        if angles.shape[1] == 1:
+            return np.zeros(len(angles), dtype=np.int64), angles[:, 0], np.full(len(angles), np.pi)
+        two = np.argpartition(angles, 1, axis=1)[:, :2]
+        a = np.take_along_axis(angles, two, axis=1)
+        order = np.argsort(a, axis=1)
+        return np.take_along_axis(two, order, 1)[:, 0], np.take_along_axis(a, order, 1)[:, 0], np.take_along_axis(a, order, 1)[:, 1]
+
+    forward, angle1, second1 = best(angle)
+    backward, angle2, second2 = best(angle.T)
+    rows = np.arange(len(angle))
+    keep = (angle1 < max_descriptor_distance) & (angle1 < max_ratio * second1) & (backward[forward] == rows)
+    keep &= (angle2[forward] < max_ratio * second2[forward])
+    return np.stack([rows[keep], forward[keep]], axis=1).astype(np.uint32)
+
+
 def view_pairs(cameras, views: List[int], max_exhaustive: int, neighbours: int) -> List[Tuple[int, int]]:
     """Pairs (a < b) to match: all of them up to `max_exhaustive` views, else each view with its `neighbours`
     nearest by camera centre (cameras facing away from each other, > 90 degrees, are skipped)."""
@@ -362,22 +554,26 @@ def _file_key(path: Path, max_image_size: int) -> Tuple[str, int, float, int]:
     return str(path), stat.st_size, stat.st_mtime, max_image_size
 
 
-def _write_view_image(source: Path, target: Path, max_image_size: int, camera_size: Tuple[int, int]) -> Tuple[int, int]:
-    """Write `source` as an RGB PNG, downscaled so its longer side is at most `max_image_size` (never upscaled),
-    through a temp file and a rename; returns its (width, height). Its aspect ratio must be its camera's."""
+def _write_view_image(source: Path, target: Path, max_image_size: int, camera_size: Tuple[int, int],
+                      upscale_to: int = 0) -> Tuple[int, int]:
+    """Write `source` as an RGB PNG, downscaled so its longer side is at most `max_image_size` (or upsampled to
+    `upscale_to` when it is shorter; never upscaled when 0), through a temp file and a rename; returns its
+    (width, height). Its aspect ratio must be its camera's."""
     width, height = camera_size
     try:
         with Image.open(source) as image:
             if abs(image.width * height - image.height * width) > 0.01 * width * height:
                 raise TriangulationError(f"{source} is {image.width}x{image.height} but its camera says {width}x{height}")
             scale = min(1.0, max_image_size / max(image.size))
+            if upscale_to and max(image.size) < upscale_to:
+                scale = upscale_to / max(image.size)
             size = (max(1, round(image.width * scale)), max(1, round(image.height * scale)))
             if image.mode in ("RGBA", "LA") or (image.mode == "P" and "transparency" in image.info):
                 rgba = image.convert("RGBA")
                 image = Image.alpha_composite(Image.new("RGBA", rgba.size, (255, 255, 255, 255)), rgba)  # Blender's white
             image = image.convert("RGB")
             if image.size != size:
-                image = image.resize(size, Image.Resampling.LANCZOS)
+                image = image.resize(size, Image.Resampling.LANCZOS if scale < 1 else Image.Resampling.BICUBIC)
             tmp = target.with_name(f".{target.name}.tmp.png")
             image.save(tmp, compress_level=1)  # written once, read once: speed over size
             os.replace(tmp, target)
