@@ -77,6 +77,10 @@ class ActiveDatamanagerConfig(FullImageDatamanagerConfig):
     after each round with the views it added (new points away from the splat join it as Gaussians); too few points
     -> random points, with one line naming the count. `random`: splatfacto's random points (as
     --pipeline.model.random-init True)."""
+    seed_points_min: int = 100
+    """`seed-points active`: fewer triangulated points than this and the splat starts from random points instead
+    (one line naming the count), and a restart keeps its step-0 Gaussians. A few hundred accurate points seed a
+    splat well; a handful, mostly from one pair of views, may not beat splatfacto's random start."""
     strict_init: bool = False
     """Deprecated: --pipeline.datamanager.seed-points colmap-initial."""
     # Up to 0.2 the selection loop's options were set here; they moved to `--pipeline.selection.*`
@@ -261,6 +265,9 @@ class ActiveDatamanager(FullImageDatamanager):
     def _seed_points_mode(self) -> str:
         """`seed-points`, with the deprecated `strict-init True` read as `colmap-initial`."""
         mode = self.config.seed_points
+        if mode == "active" and self.config.seed_points_min < 1:
+            raise ActiveViewError(f"--pipeline.datamanager.seed-points-min {self.config.seed_points_min}: the fewest "
+                                  "triangulated points to start from must be at least 1")
         if not self.config.strict_init:
             return mode
         if mode not in ("colmap", "colmap-initial"):
@@ -283,7 +290,7 @@ class ActiveDatamanager(FullImageDatamanager):
 
         self._drop_seed_points()  # the dataparser's points (every photo's) never reach the model
         points = seed_points(self.train_dataset.cameras, self.train_dataset.image_filenames, self.active,
-                             existing=self.triangulation_workspace())
+                             existing=self.triangulation_workspace(), min_points=self.config.seed_points_min)
         if points is None:
             return
         meta = self.train_dataparser_outputs.metadata
@@ -307,7 +314,7 @@ class ActiveDatamanager(FullImageDatamanager):
         from hpgs_ns.scenes.triangulate import triangulate_views
 
         return triangulate_views(self.train_dataset.cameras, self.train_dataset.image_filenames, self.active,
-                                 existing=self.triangulation_workspace())
+                                 existing=self.triangulation_workspace(), min_points=self.config.seed_points_min)
 
     def _keep_points_seen_by_initial_views(self, min_views: int = 2) -> None:
         """Filter the dataparser's seed points in place (the pipeline hands them to the model after this)."""

@@ -12,6 +12,7 @@ import torch
 from conftest import require_shared, short_config
 
 import hpgs_ns.scenes.triangulate as triangulate
+from hpgs_ns.datamanager import ActiveViewError
 
 
 def setup_trainer(cfg):
@@ -165,3 +166,17 @@ def test_a_restart_in_active_mode_starts_from_what_the_active_views_triangulate(
     assert count > seeded  # twelve views triangulate more than the first eight
     assert "seed_points_added" not in record.after_add  # the restart's points are the whole splat
     assert model.num_points == count == model.initial_gaussians["means"].shape[0]  # no refinement at these steps
+
+
+def test_seed_points_min_decides_between_triangulated_and_random_points(juicebox, tmp_path, capsys):
+    cfg = juicebox_config(juicebox, tmp_path / "run", steps=1, rounds=0, initial=8, seed_points="active",
+                          seed_points_min=100000)
+    cfg.pipeline.model.num_random = 3000
+    model = setup_trainer(cfg).pipeline.model
+    out = capsys.readouterr()
+    line = [x for x in (out.out + out.err).splitlines() if x.startswith("Seed points:")]
+    assert len(line) == 1 and "fewer than min_points 100000" in line[0] and "seed-points-min" in line[0], line
+    assert model.num_points == 3000  # splatfacto's random start, though hundreds of points were triangulated
+    cfg.pipeline.datamanager.seed_points_min = 0
+    with pytest.raises(ActiveViewError, match="seed-points-min 0: the fewest triangulated points"):
+        setup_trainer(cfg)

@@ -196,7 +196,8 @@ def seed_points(cameras, image_paths: Sequence[Path], indices: Sequence[int], **
     xyz, rgb, info = triangulate_views(cameras, image_paths, indices, **options)
     if info.ok:
         return xyz, rgb
-    CONSOLE.print(f"[yellow]Seed points: {escape(info.message)}; the splat starts from random points", soft_wrap=True, highlight=False)
+    CONSOLE.print(f"[yellow]Seed points: {escape(info.message)}; the splat starts from random points "
+                  "(--pipeline.datamanager.seed-points-min sets the fewest to start from)", soft_wrap=True, highlight=False)
     return None
 
 
