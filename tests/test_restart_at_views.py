@@ -130,3 +130,8 @@ def test_restart_counts_must_be_positive():
     auto = AfterAddConfig()
     assert auto.restart_counts(4, random_start=True) == (8, 16) and auto.restart_counts(4, random_start=False) == ()
     assert auto.describe() == "off" and not AfterAddConfig(restart_random_starts=False).restart_counts(4, True)
+    # an active start that found its points restarts too, unless told not to; HP-GS's 20 + 7 views never reach 40
+    assert auto.restart_counts(4, random_start=False, active_start=True) == (8, 16)
+    assert AfterAddConfig(restart_active_starts=False).restart_counts(4, False, active_start=True) == ()
+    assert AfterAddConfig(restart_active_starts=False).restart_counts(4, True, active_start=False) == (8, 16)
+    assert auto.restart_counts(20, False, active_start=True) == (40, 80)

@@ -180,3 +180,18 @@ def test_seed_points_min_decides_between_triangulated_and_random_points(juicebox
     cfg.pipeline.datamanager.seed_points_min = 0
     with pytest.raises(ActiveViewError, match="seed-points-min 0: the fewest triangulated points"):
         setup_trainer(cfg)
+
+
+def test_an_active_start_restarts_by_default_at_twice_its_views_from_their_triangulation(juicebox, tmp_path, spy, capsys):
+    cfg = juicebox_config(juicebox, tmp_path / "run", steps=3, select_at=(1,), rounds=1, initial=8, views_per_round=8,
+                          selector="random", seed_points="active")
+    trainer = setup_trainer(cfg)
+    dm, model = trainer.pipeline.datamanager, trainer.pipeline.model
+    seeded = model.num_points
+    assert not model.random_start and seeded >= 100  # seeded from the 8 initial views' triangulation
+    out = capsys.readouterr().out
+    assert "active seed points: the splat restarts at 16 and 32 views" in out.replace("\n", " ")
+    trainer.train()
+    record = dm.history[0]
+    assert record.reset and len(dm.active) == 16 and spy[-1] == sorted(dm.active)
+    assert int(record.after_add["seed_points_restart"]) == model.num_points > seeded

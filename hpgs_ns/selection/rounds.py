@@ -143,11 +143,19 @@ class SelectionRounds:
         restart_counts: Tuple[int, ...] = ()
         if not self.config.reset_after_add:
             initial = len(self.datamanager.initial_views)
-            restart_counts = self.config.after_add.restart_counts(initial, bool(getattr(self.model, "random_start", False)))
+            random_start = bool(getattr(self.model, "random_start", False))
+            active_start = getattr(self.datamanager, "seed_points_mode", None) == "active" and not random_start
+            restart_counts = self.config.after_add.restart_counts(initial, random_start, active_start)
             restart_counts = tuple(n for n in restart_counts if n > initial)
             if restart_counts and not self.config.after_add.restart_at_views:
-                CONSOLE.print(f"random start: the splat restarts at {' and '.join(map(str, restart_counts))} views "
-                              "(--pipeline.selection.after-add.restart-random-starts False: never)", soft_wrap=True)
+                at = " and ".join(map(str, restart_counts))
+                if random_start:
+                    CONSOLE.print(f"random start: the splat restarts at {at} views "
+                                  "(--pipeline.selection.after-add.restart-random-starts False: never)", soft_wrap=True)
+                else:
+                    CONSOLE.print(f"active seed points: the splat restarts at {at} views from what the active views "
+                                  "triangulate then (--pipeline.selection.after-add.restart-active-starts False: never)",
+                                  soft_wrap=True)
         if self.config.reset_after_add or restart_counts:
             self.model.keep_initial_for_resets()
 
