@@ -1,7 +1,7 @@
 """The Done-when figures of issue #33 (active training), from the full-scale judging runs.
 
 Reads `benchmarks/results/judge-full/<scene>/<start>/<variant>/seed<k>.json` (start: `colmap` or `active`;
-variant: `farthest`, the progressive run, or `final-set`, its final 20 views trained from step 0), and the runs of
+variant: the progressive run's selector, e.g. `farthest`, or `final-set`, its final 20 views trained from step 0), and the runs of
 main at 2bbac07 (`benchmarks/results/suite/<scene>/fisherrf/farthest/`) for the guard. Prints per scene and start:
 run PSNR per seed, final-set, schedule cost (final-set - run, same seed), then the bars: mean schedule cost with its
 95% paired interval (hierarchical bootstrap over scenes, `hpgs_ns.bench.stats`), fox's PSNR, the seed SD of
@@ -64,7 +64,8 @@ def summarise(runs) -> dict:
     for start in starts:
         costs, seed_groups = {}, []
         for scene in scenes:
-            run = {s: t["psnr"] for s, t in runs.get((scene, start, "farthest"), {}).items()}
+            selectors = sorted(v for (sc, st, v) in runs if sc == scene and st == start and v != "final-set")
+            run = {s: t["psnr"] for s, t in runs.get((scene, start, selectors[0] if selectors else "farthest"), {}).items()}
             final = {s: t["psnr"] for s, t in runs.get((scene, start, "final-set"), {}).items()}
             if not run:
                 continue
