@@ -168,9 +168,18 @@ class HpgsSplatfactoModel(SplatfactoModel):
         strategy.refine_start_iter = self.clocked(cfg.warmup_length)
         strategy.refine_every = self.clocked(cfg.refine_every)
         strategy.reset_every = self.clocked(cfg.reset_alpha_every * cfg.refine_every)
-        strategy.refine_scale2d_stop_iter = self.clocked(cfg.stop_screen_size_at)
         strategy.pause_refine_after_reset = self.num_train_data + strategy.refine_every
+        self._set_refine_windows()
+
+    def _set_refine_windows(self) -> None:
+        """Where densification stops (stop-split-at) and where its screen-size split and cull stop
+        (stop-screen-size-at), on this model's clock, both kept open until `refine_until` (after-add refine-steps).
+        Screen size too: a floater just in front of a late view fills its screen, and only the screen-size cull sees
+        that (splatfacto runs it from step reset-alpha-every x refine-every to stop-screen-size-at, 3000-4000)."""
+        cfg, strategy = self.config, self.strategy
         strategy.refine_stop_iter = max(self.clocked(cfg.stop_split_at), int(self.refine_until))
+        if cfg.stop_screen_size_at > 0:  # 0: the user turned screen-size refinement off
+            strategy.refine_scale2d_stop_iter = max(self.clocked(cfg.stop_screen_size_at), int(self.refine_until))
 
     def _get_downscale_factor(self) -> int:
         # splatfacto's rule with the resolution schedule on this model's clock
@@ -226,10 +235,11 @@ class HpgsSplatfactoModel(SplatfactoModel):
     """Model step before which densification runs even past stop-split-at (set by after-add refine-steps)."""
 
     def extend_refinement(self, until_step: int) -> int:
-        """Keep splatfacto's densification (split, duplicate, cull, periodic opacity reset) running until trainer
-        step `until_step`, even past stop-split-at. Returns the model step it now stops at."""
+        """Keep splatfacto's densification (split, duplicate, cull, periodic opacity reset, and the screen-size split
+        and cull) running until trainer step `until_step`, even past stop-split-at. Returns the model step it now
+        stops at."""
         self.refine_until = max(int(self.refine_until), int(until_step) - int(self.step_offset))
-        self.strategy.refine_stop_iter = max(self.clocked(self.config.stop_split_at), self.refine_until)
+        self._set_refine_windows()
         return int(self.strategy.refine_stop_iter)
 
     @torch.no_grad()
@@ -360,7 +370,8 @@ class HpgsSplatfactoModel(SplatfactoModel):
         for optimizer in optimizers.values():
             optimizer.state = defaultdict(dict)  # fresh Adam moments and step counts, as at step 0
         self.strategy_state = self.strategy.initialize_state(scene_scale=1.0)
-        self.refine_until, self.strategy.refine_stop_iter = 0, self.clocked(self.config.stop_split_at)
+        self.refine_until = 0
+        self._set_refine_windows()
         self.step_offset = int(step)
         self.step = 0
 

@@ -25,6 +25,7 @@ def after_add_config(scene: Path, out: Path, steps: int):
     cfg.max_num_iterations, cfg.schedules_follow_steps = steps, steps == TOTAL  # a stopped run keeps TOTAL's schedule
     model = cfg.pipeline.model
     model.warmup_length, model.refine_every, model.reset_alpha_every, model.stop_split_at = 5, 5, 100, 45
+    model.stop_screen_size_at = 30
     cfg.pipeline.selection.after_add = AfterAddConfig(refine_steps=WINDOW, reset_opacity=True, lr_rewind=REWIND)
     return cfg
 
@@ -39,7 +40,8 @@ def train_with_spy(cfg, seen: dict):
         seen[step] = {"num_points": model.num_points, "lr": self.optimizers.optimizers["means"].param_groups[0]["lr"],
                       "position": self.optimizers.schedulers["means"].last_epoch,
                       "max_opacity": float(model.gauss_params["opacities"].max()),
-                      "refine_stop": model.strategy.refine_stop_iter}
+                      "refine_stop": model.strategy.refine_stop_iter,
+                      "screen_size_stop": model.strategy.refine_scale2d_stop_iter}
         return original(self, step)
 
     Trainer.train_iteration = spy
@@ -67,6 +69,9 @@ def test_refinement_stops_at_stop_split_at_then_runs_again_after_the_add(run):
     counts = [seen[s]["num_points"] for s in range(41, ROUND + 1)]
     assert len(set(counts)) == 1  # no refine between stop-split-at and the add
     assert seen[ROUND - 1]["refine_stop"] == 45 and seen[ROUND]["refine_stop"] == ROUND + WINDOW
+    # the screen-size split and cull (a floater filling the new view's screen) open again for the same window
+    assert seen[ROUND - 1]["screen_size_stop"] == 30 and seen[ROUND]["screen_size_stop"] == ROUND + WINDOW
+    assert seen[TOTAL - 1]["screen_size_stop"] == ROUND + WINDOW  # after the resume too
     # refines at 55 (before the resume), 60 and 65 (after it): the count moves, then stays after the window
     assert len({seen[s]["num_points"] for s in range(ROUND + 1, ROUND + WINDOW + 1)}) > 1
     assert len({seen[s]["num_points"] for s in range(ROUND + WINDOW + 1, TOTAL)}) == 1

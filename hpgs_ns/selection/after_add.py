@@ -27,8 +27,9 @@ class AfterAddConfig:
 
     refine_steps: int = 0
     """Densify, split and cull for this many steps after each add, even past splatfacto's stop-split-at (and with
-    its periodic opacity resets inside that window): the new view can grow Gaussians where it sees detail and prune
-    the ones it shows to be floaters. 0: refinement ends at stop-split-at whatever arrives after it."""
+    its periodic opacity resets and its screen-size split and cull inside that window): the new view can grow
+    Gaussians where it sees detail and prune the ones it shows to be floaters (one just in front of it fills its
+    screen). 0: refinement ends at stop-split-at whatever arrives after it."""
     reset_opacity: bool = False
     """Reset opacities at each add, as splatfacto does every reset-alpha-every refines: Gaussians the views do not
     need fade out and are culled, including floaters that only the first views tolerated."""
