@@ -162,9 +162,10 @@ class ActiveDatamanager(FullImageDatamanager):
                 "--eval-mode all trains on the test views too, so nothing is withheld for testing; use the dataparser's "
                 "default split (e.g. nerfstudio-data --eval-mode fraction, or interval)"
             )
-        if config.seed_points in ("active", "random") and getattr(config.dataparser, "load_3D_points", False):
+        load_points = getattr(config.dataparser, "load_3D_points", None)
+        if config.seed_points in ("active", "random") and load_points:
             # these modes drop the capture's points anyway: not reading them also spares the dataparser's
-            # "no seed points: random start" line, which is wrong for `active`
+            # "no seed points: random start" line, which is wrong for `active` (restored below: the config is the user's)
             config.dataparser.load_3D_points = False
         try:
             super().__init__(config, device=device, test_mode=test_mode, **kwargs)
@@ -175,6 +176,9 @@ class ActiveDatamanager(FullImageDatamanager):
                 f"{err}: the images were downscaled with another rounding than the cameras; pass the dataparser's "
                 "--downscale-rounding-mode (floor, round or ceil) that made them, or delete the images_N folder"
             ) from None
+        finally:
+            if load_points is not None:
+                config.dataparser.load_3D_points = load_points
         if test_mode != "inference":  # nerfstudio loads the photos lazily, and asserts their size mid-run
             check_image_sizes([self.train_dataset, self.eval_dataset], self.config.dataparser)
         root = Path(self.config.dataparser.data)

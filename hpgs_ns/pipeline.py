@@ -55,7 +55,11 @@ class HpgsPipeline(VanillaPipeline):
         super().__init__(config, device, test_mode, *args, **kwargs)
         training = test_mode == "val"
         selection = config.selection
-        self.datamanager.selection_signature = selection.resume_signature(self.datamanager.config.seed)
+        signature = selection.resume_signature(self.datamanager.config.seed)
+        if getattr(self.datamanager, "seed_points_mode", None) == "active":
+            # written since active starts restart by default: a checkpoint without it (0.3's) never restarted
+            signature["after-add.restart-active-starts"] = str(bool(selection.after_add.restart_active_starts))
+        self.datamanager.selection_signature = signature
         self.rounds: Optional[SelectionRounds] = selection.setup(datamanager=self.datamanager, model=self.model) if training else None
         self.snapshots: Optional[Snapshots] = Snapshots(selection.snapshot_every, self.datamanager, self.model) if training else None
         # A viewer element, not an nn.Module: checkpoints' keys stay the same.

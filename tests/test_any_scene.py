@@ -169,6 +169,7 @@ def test_active_seed_points_on_a_capture_without_a_ply_say_only_what_they_do(fox
         trainer.setup()
     finally:
         HpgsNerfstudio._told = saved_told
+    assert cfg.pipeline.datamanager.dataparser.load_3D_points is True  # skipped for this setup only, not changed
     out = capsys.readouterr()
     lines = [line for line in (out.out + out.err).splitlines() if "seed points" in line.lower()]
     # one line: what was triangulated; not the dataparser's "no seed points: random start" before it

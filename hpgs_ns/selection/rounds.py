@@ -146,7 +146,9 @@ class SelectionRounds:
             random_start = bool(getattr(self.model, "random_start", False))
             active_start = getattr(self.datamanager, "seed_points_mode", None) == "active" and not random_start
             restart_counts = self.config.after_add.restart_counts(initial, random_start, active_start)
-            restart_counts = tuple(n for n in restart_counts if n > initial)
+            dm = self.datamanager
+            reachable = min(initial + self.config.max_rounds * self.config.views_per_round, len(dm.active) + len(dm.candidates))
+            restart_counts = tuple(n for n in restart_counts if initial < n <= reachable)  # HP-GS's 20 + 7: none
             if restart_counts and not self.config.after_add.restart_at_views:
                 at = " and ".join(map(str, restart_counts))
                 if random_start:
