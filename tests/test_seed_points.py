@@ -206,3 +206,18 @@ def test_an_active_start_restarts_by_default_at_twice_its_views_from_their_trian
     old = {k: v for k, v in now.items() if k != "after-add.restart-active-starts"}
     with pytest.raises(CheckpointError, match="after-add.restart-active-starts: checkpoint \\(unset\\), now True"):
         check_resume_matches(SimpleNamespace(datamanager=SimpleNamespace(loaded_selection_signature=old, selection_signature=now)))
+
+
+def test_without_pycolmap_each_round_says_so_in_one_line(tiny_scene, tmp_path, capsys, monkeypatch):
+    import sys
+
+    monkeypatch.setitem(sys.modules, "pycolmap", None)  # `import pycolmap` fails as if it were not installed
+    cfg = short_config(tiny_scene, tmp_path, steps=3, select_at=(1,), rounds=1, selector="random", seed_points="active")
+    cfg.pipeline.model.num_random = 2000
+    trainer = setup_trainer(cfg)
+    assert trainer.pipeline.model.num_points == 2000  # random start
+    trainer.train()
+    out = capsys.readouterr()
+    lines = [x for x in (out.out + out.err).replace("\n ", " ").splitlines() if "round 1" in x and "seed points" in x]
+    assert len(lines) == 1 and "pycolmap is not installed" in lines[0] and "no Gaussians added" in lines[0], lines
+    assert trainer.pipeline.datamanager.history[0].after_add["seed_points_added"] == 0

@@ -314,8 +314,9 @@ class SelectionRounds:
         seconds = time.perf_counter() - start
         record = dm.history[-1]
         record.after_add = {**record.after_add, "seed_points_added": float(added), "seed_points_seconds": float(seconds)}
-        CONSOLE.print(f"seed points after round {record.round}: {xyz.shape[0]} triangulated from {len(dm.active)} views, "
-                      f"{added} away from the splat added ({model.num_points} Gaussians, {seconds:.1f} s)")
+        if not info.failed:  # a failure had its one line above
+            CONSOLE.print(f"seed points after round {record.round}: {xyz.shape[0]} triangulated from {len(dm.active)} "
+                          f"views, {added} away from the splat added ({model.num_points} Gaussians, {seconds:.1f} s)")
         writer.put_scalar("selection/seed_points_added", added, step)
         self.write_log()
         return added
