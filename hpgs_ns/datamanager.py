@@ -204,7 +204,7 @@ class ActiveDatamanager(FullImageDatamanager):
             self._keep_points_seen_by_initial_views()
         elif self.seed_points_mode == "random":
             self._drop_seed_points()
-        elif self.seed_points_mode == "active" and test_mode != "inference":  # ns-eval/ns-viewer load the checkpoint's
+        elif self.seed_points_mode == "active" and test_mode == "val":  # training; ns-eval/ns-viewer ("test") load the checkpoint's
             self._triangulate_seed_points()
         self.train_unseen_cameras = self.sample_train_cameras()
 

@@ -73,6 +73,13 @@ def test_active_seeds_from_the_initial_views_only_and_a_round_adds_gaussians(jui
     resumed = setup_trainer(resume)
     assert resumed.pipeline.model.num_points == saved
     assert resumed.pipeline.datamanager.history[0].after_add["seed_points_added"] == added
+    # ns-eval / ns-viewer load the checkpoint's splat: nothing is triangulated again
+    from nerfstudio.utils.eval_utils import eval_setup
+
+    calls = len(spy)
+    cfg.save_config()
+    _, pipeline, _, _ = eval_setup(trainer.base_dir / "config.yml", test_mode="test")
+    assert len(spy) == calls and pipeline.model.num_points == saved
 
 
 def test_active_with_too_few_matches_starts_from_random_points_with_one_line(tiny_scene, tmp_path, spy, capsys):
