@@ -303,11 +303,12 @@ class TriangulationWorkspace:
                                            verification_options=verification, device=pycolmap.Device.cpu)
                 if settings.verification == "poses":
                     info.seconds["match"] = time.perf_counter() - tick
+                    tick = time.perf_counter()
                     self._verify_with_poses(pycolmap, cameras, pairs, db_images, settings)
-                    info.seconds["verify"] = time.perf_counter() - tick - info.seconds["match"]
+                    info.seconds["verify"] = time.perf_counter() - tick
                 self._matched.update(pairs)
             info.pairs_matched = len(pairs)
-            info.seconds["match"] = time.perf_counter() - tick - info.seconds.get("verify", 0.0)
+            info.seconds.setdefault("match", time.perf_counter() - tick)
 
             tick = time.perf_counter()
             reconstruction = pycolmap.Reconstruction()
@@ -356,9 +357,7 @@ class TriangulationWorkspace:
                 matches = guided_matches(descriptors1, descriptors2, distance, settings.max_epipolar_error, settings.max_ratio)
                 database.write_matches(id1, id2, matches)
                 if len(matches) >= settings.min_num_inliers:
-                    database.write_two_view_geometry(id1, id2, pycolmap.TwoViewGeometry(
-                        config=pycolmap.TwoViewGeometryConfiguration.CALIBRATED, inlier_matches=matches,
-                        E=essential_matrix(cam2_from_cam1), cam2_from_cam1=pycolmap.Rigid3d(cam2_from_cam1)))
+                    _write_known_pose_geometry(pycolmap, database, id1, id2, matches, cam2_from_cam1)
         finally:
             database.close()
 
@@ -378,15 +377,8 @@ class TriangulationWorkspace:
                 points2 = database.read_keypoints(id2)[matches[:, 1], :2].astype(np.float64)
                 error = epipolar_distance(camera1, camera2, cam2_from_cam1, points1, points2)
                 inliers = matches[error < settings.max_epipolar_error]
-                if len(inliers) < settings.min_num_inliers:
-                    continue
-                geometry = pycolmap.TwoViewGeometry(
-                    config=pycolmap.TwoViewGeometryConfiguration.CALIBRATED, inlier_matches=inliers.astype(np.uint32),
-                    E=essential_matrix(cam2_from_cam1), cam2_from_cam1=pycolmap.Rigid3d(cam2_from_cam1))
-                if database.exists_two_view_geometry(id1, id2):
-                    database.update_two_view_geometry(id1, id2, geometry)
-                else:
-                    database.write_two_view_geometry(id1, id2, geometry)
+                if len(inliers) >= settings.min_num_inliers:
+                    _write_known_pose_geometry(pycolmap, database, id1, id2, inliers, cam2_from_cam1)
         finally:
             database.close()
 
@@ -454,6 +446,18 @@ def colmap_cam_from_world(camera_to_world) -> np.ndarray:
     rotation = c2w[:, :3] * np.array([1.0, -1.0, -1.0])  # columns: the camera's axes in the world
     rotation_cw = rotation.T
     return np.concatenate([rotation_cw, (-rotation_cw @ c2w[:, 3])[:, None]], axis=1)
+
+
+def _write_known_pose_geometry(pycolmap, database, id1: int, id2: int, inliers: np.ndarray, cam2_from_cam1: np.ndarray) -> None:
+    """Store a pair's two-view geometry from its KNOWN relative pose, with these inlier matches [K, 2], in place of
+    any COLMAP estimated (the triangulator reads only inlier matches)."""
+    geometry = pycolmap.TwoViewGeometry(
+        config=pycolmap.TwoViewGeometryConfiguration.CALIBRATED, inlier_matches=inliers.astype(np.uint32),
+        E=essential_matrix(cam2_from_cam1), cam2_from_cam1=pycolmap.Rigid3d(cam2_from_cam1))
+    if database.exists_two_view_geometry(id1, id2):
+        database.update_two_view_geometry(id1, id2, geometry)
+    else:
+        database.write_two_view_geometry(id1, id2, geometry)
 
 
 def relative_pose(camera_to_world1, camera_to_world2) -> np.ndarray:

@@ -140,13 +140,13 @@ class SelectionRounds:
                 what = ("no selection rounds will run" if count == 0
                         else f"only {count} of {self.config.max_rounds} selection rounds will run")
                 CONSOLE.print(f"[yellow]{what}: {why}", soft_wrap=True)
+        dm = self.datamanager
+        active_mode = getattr(dm, "seed_points_mode", None) == "active"
         restart_counts: Tuple[int, ...] = ()
         if not self.config.reset_after_add:
-            initial = len(self.datamanager.initial_views)
+            initial = len(dm.initial_views)
             random_start = bool(getattr(self.model, "random_start", False))
-            active_start = getattr(self.datamanager, "seed_points_mode", None) == "active" and not random_start
-            restart_counts = self.config.after_add.restart_counts(initial, random_start, active_start)
-            dm = self.datamanager
+            restart_counts = self.config.after_add.restart_counts(initial, random_start, active_mode and not random_start)
             reachable = min(initial + self.config.max_rounds * self.config.views_per_round, len(dm.active) + len(dm.candidates))
             restart_counts = tuple(n for n in restart_counts if initial < n <= reachable)  # HP-GS's 20 + 7: none
             if restart_counts and not self.config.after_add.restart_at_views:
@@ -167,7 +167,7 @@ class SelectionRounds:
             if self.is_round_step(step):
                 before = len(self.datamanager.active)
                 self.run_round(step)
-                active_seeds = getattr(self.datamanager, "seed_points_mode", None) == "active" and attrs.optimizers is not None
+                active_seeds = active_mode and attrs.optimizers is not None
                 if self.config.reset_after_add:
                     self.reset_model(step, attrs.optimizers)
                 elif restarts_at(restart_counts, before, len(self.datamanager.active)):
