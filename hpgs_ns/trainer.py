@@ -30,7 +30,7 @@ from nerfstudio.utils import comms
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from hpgs_ns import schedules
-from hpgs_ns.atomic_write import write_json_atomic
+from hpgs_ns.atomic_write import atomic_path, write_json_atomic
 from hpgs_ns.errors import OptionError, UserError
 from hpgs_ns.pipeline import upgrade_pipeline_config
 
@@ -46,6 +46,10 @@ class HpgsTrainerConfig(TrainerConfig):
     _target: Type = field(default_factory=lambda: HpgsTrainer)
     final_eval_json: Optional[Path] = None
     """If set, evaluate the test views once training ends and write `ns-eval`'s JSON here."""
+    final_eval_worst_views: int = 2
+    """With `--final-eval-json`, also save the lowest-PSNR test views as JPEGs beside it (ground truth | render),
+    named in the JSON's `worst_views`: one view can move a scene's mean by a dB (a floater), and the checkpoint
+    often stays on the GPU machine. 0: none."""
     schedules_follow_steps: bool = True
     """Size every learning-rate schedule (its decay to the final rate) to `--max-num-iterations`, whatever
     `--optimizers.*.scheduler.max-steps` says: a 20000-step run otherwise trains its last 5000 steps, and every view
@@ -203,7 +207,7 @@ class HpgsTrainer(Trainer):
         # Before the parent's part: with the viewer on, it never returns.
         if self.config.final_eval_json is not None:
             rng = random_state()
-            write_final_eval(self, Path(self.config.final_eval_json))
+            write_final_eval(self, Path(self.config.final_eval_json), worst_views=self.config.final_eval_worst_views)
             set_random_state(rng)  # the final checkpoint resumes as if no evaluation had run
         super()._after_train()
 
@@ -288,17 +292,23 @@ def check_resume_matches(pipeline) -> None:
                               "checkpoint's options, or start a new run without --load-dir")
 
 
-def write_final_eval(trainer: Trainer, path: Path) -> Path:
+def write_final_eval(trainer: Trainer, path: Path, worst_views: int = 0) -> Path:
     """`ns-eval`'s output for the trainer's current weights (what `_after_train` saves as the final checkpoint),
-    plus each test view's own metrics (`test_views`: name, psnr, ssim, lpips, in the test split's order)."""
+    plus each test view's own metrics (`test_views`: name, psnr, ssim, lpips, in the test split's order) and, with
+    `worst_views`, JPEGs of the lowest-PSNR views beside `path` (`worst_views`: name, psnr, image file name)."""
     pipeline = trainer.pipeline
     model = pipeline.model
     per_view: List[Dict[str, float]] = []
+    worst: List[tuple] = []  # (psnr, index, image), the `worst_views` lowest so far
     score_view = model.get_image_metrics_and_images
 
     def recording(outputs, batch):
         metrics_dict, images = score_view(outputs, batch)
         per_view.append({k: float(v) for k, v in metrics_dict.items()})
+        if worst_views > 0 and "img" in images and "psnr" in metrics_dict:
+            worst.append((float(metrics_dict["psnr"]), len(per_view) - 1, images["img"].detach().cpu()))
+            worst.sort(key=lambda item: item[0])
+            del worst[worst_views:]
         return metrics_dict, images
 
     # nerfstudio averages the views' metrics without returning them: record each as it is scored (this call only).
@@ -308,12 +318,31 @@ def write_final_eval(trainer: Trainer, path: Path) -> Path:
     finally:
         del model.get_image_metrics_and_images
     names = list(getattr(pipeline.datamanager, "test_view_names", []))
-    test_views = [{"name": n, **m} for n, m in zip(names, per_view)] if len(names) == len(per_view) else []
+    named = len(names) == len(per_view)
+    test_views = [{"name": n, **m} for n, m in zip(names, per_view)] if named else []
+    worst_saved = []
+    for rank, (psnr, index, image) in enumerate(worst):
+        file = path.with_name(f"{path.stem}-worst{rank}.jpg")
+        save_jpeg(image, file)
+        worst_saved.append({"name": names[index] if named else str(index), "psnr": psnr, "image": file.name})
     payload = {
         "experiment_name": trainer.config.experiment_name,
         "method_name": trainer.config.method_name,
         "checkpoint": str(trainer.checkpoint_dir / f"step-{trainer.step:09d}.ckpt"),
         "results": metrics,
         "test_views": test_views,
+        "worst_views": worst_saved,
     }
     return write_json_atomic(path, payload)
+
+
+def save_jpeg(image: torch.Tensor, path: Path) -> Path:
+    """An [H, W, 3] (or [1, 3, H, W]) image in [0, 1] as a JPEG, written to a temp file then renamed."""
+    from PIL import Image
+
+    if image.dim() == 4:
+        image = image[0].permute(1, 2, 0)
+    pixels = (image.clamp(0, 1) * 255).round().to(torch.uint8).numpy()
+    with atomic_path(path, suffix=".jpg") as tmp:
+        Image.fromarray(pixels).save(tmp, quality=90)
+    return path

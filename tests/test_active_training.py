@@ -151,5 +151,14 @@ def test_stock_ns_eval_and_ns_viewer_open_the_checkpoint(trained, tmp_path):
     views = final["test_views"]
     assert [v["name"] for v in views] == trained["trainer"].pipeline.datamanager.test_view_names
     assert sum(v["psnr"] for v in views) / len(views) == pytest.approx(results["psnr"], rel=1e-6)
+    # the two lowest-PSNR views, saved beside the JSON as ground truth | render
+    lowest = sorted(views, key=lambda v: v["psnr"])[:2]
+    assert [(w["name"], w["psnr"]) for w in final["worst_views"]] == [(v["name"], pytest.approx(v["psnr"])) for v in lowest]
+    from PIL import Image
+    height, width = trained["trainer"].pipeline.datamanager.eval_dataset.cameras[0].height.item(), \
+        trained["trainer"].pipeline.datamanager.eval_dataset.cameras[0].width.item()
+    for worst in final["worst_views"]:
+        image = Image.open(trained["cfg"].final_eval_json.with_name(worst["image"]))
+        assert image.size == (2 * width, height) and image.format == "JPEG"
 
     stock_ns_viewer_page(config, env)

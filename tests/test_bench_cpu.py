@@ -63,6 +63,11 @@ def test_tiny_bench_writes_results_table_plots_and_resumes(tiny_bench, tiny_scen
     assert [p.step for p in farthest.psnr_per_round] == [4, 8, 12, 16, 20, 24, 28]
     assert set(farthest.chosen_views).isdisjoint(farthest.initial_views)
     assert len(farthest.timing.selection_seconds_per_round) == 7
+    # the two lowest-PSNR test views' renders are kept beside each result
+    result = bench.out / tiny_scene.name / "hpgs" / "farthest" / "seed0.json"
+    lowest = sorted(farthest.test_views, key=lambda v: v.psnr)[:2]
+    assert [(w["name"], w["image"]) for w in farthest.worst_views] == [(v.name, f"seed0-worst{k}.jpg") for k, v in enumerate(lowest)]
+    assert all(result.with_name(w["image"]).stat().st_size > 1000 for w in farthest.worst_views)
     # the table reports each run's own numbers: one seed, so no spread
     table = (bench.out / "table.md").read_text()
     assert (f"| {tiny_scene.name} | hpgs | farthest | 1 | 13 | {farthest.test.psnr:.2f} | {farthest.test.ssim:.3f} | "

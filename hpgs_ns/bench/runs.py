@@ -448,6 +448,21 @@ def keep_candidate_log(log: Path, keep: Path) -> None:
         shutil.copyfileobj(src, dst)
 
 
+def keep_worst_views(metrics: dict, run_dir: Path, result: Path) -> List[dict]:
+    """Copy the final eval's worst-view JPEGs beside the run's result (`<stem>-worst<k>.jpg`): the run folder
+    (checkpoints) is often left on the GPU machine, and one view can move a scene's mean by a dB."""
+    kept = []
+    for rank, view in enumerate(metrics.get("worst_views", [])):
+        source = run_dir / view["image"]
+        if not source.is_file():
+            continue
+        target = result.with_name(f"{result.stem}-worst{rank}.jpg")
+        with atomic_path(target, suffix=".jpg") as tmp:
+            shutil.copyfile(source, tmp)
+        kept.append({"name": view["name"], "psnr": view["psnr"], "image": target.name})
+    return kept
+
+
 def scene_blend_weights(bench: Bench, job: Job) -> Dict[str, float]:
     """`blend`'s weights for this scene from --blend-weights, as option names (empty: the shipped weights)."""
     if bench.blend_weights is None or job.name != "blend":
@@ -506,6 +521,7 @@ def run_one(bench: Bench, job: Job, env: Optional[Dict[str, str]] = None, sweep:
     if log.is_file():
         keep_candidate_log(log, job.result_path(bench.out).with_name(f"{job.stem}-candidates.jsonl.gz"))
     metrics = json.loads((run_dir / "eval.json").read_text())
+    worst_views = keep_worst_views(metrics, run_dir, job.result_path(bench.out))
     selected = json.loads((run_dir / "selected_views.json").read_text())
     rounds = selected["rounds"]
     timing = train_timing(run_dir)
@@ -540,6 +556,7 @@ def run_one(bench: Bench, job: Job, env: Optional[Dict[str, str]] = None, sweep:
             peak_gpu_allocated_mb=selected.get("peak_gpu_memory_mb"),
         ),
         selection_work=summed_work(rounds),
+        worst_views=worst_views,
         initial_views=selected["initial"],
         chosen_views=[v for r in rounds for v in r["chosen"]],
         provenance=Provenance(command=shlex.join(cmd), device=device_name(), git_commit=provenance.git_commit(),
