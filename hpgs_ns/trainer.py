@@ -295,7 +295,8 @@ def check_resume_matches(pipeline) -> None:
 def write_final_eval(trainer: Trainer, path: Path, worst_views: int = 0) -> Path:
     """`ns-eval`'s output for the trainer's current weights (what `_after_train` saves as the final checkpoint),
     plus each test view's own metrics (`test_views`: name, psnr, ssim, lpips, in the test split's order) and, with
-    `worst_views`, JPEGs of the lowest-PSNR views beside `path` (`worst_views`: name, psnr, image file name)."""
+    `worst_views`, JPEGs of the lowest-PSNR views beside `path` (`worst_views`: name, psnr, image file name), and
+    the splat's size (`num_gaussians`)."""
     pipeline = trainer.pipeline
     model = pipeline.model
     per_view: List[Dict[str, float]] = []
@@ -332,6 +333,7 @@ def write_final_eval(trainer: Trainer, path: Path, worst_views: int = 0) -> Path
         "results": metrics,
         "test_views": test_views,
         "worst_views": worst_saved,
+        "num_gaussians": int(getattr(model, "num_points", 0)),
     }
     return write_json_atomic(path, payload)
 

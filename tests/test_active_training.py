@@ -160,5 +160,6 @@ def test_stock_ns_eval_and_ns_viewer_open_the_checkpoint(trained, tmp_path):
     for worst in final["worst_views"]:
         image = Image.open(trained["cfg"].final_eval_json.with_name(worst["image"]))
         assert image.size == (2 * width, height) and image.format == "JPEG"
+    assert final["num_gaussians"] == trained["trainer"].pipeline.model.num_points
 
     stock_ns_viewer_page(config, env)

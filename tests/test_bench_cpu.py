@@ -68,6 +68,7 @@ def test_tiny_bench_writes_results_table_plots_and_resumes(tiny_bench, tiny_scen
     lowest = sorted(farthest.test_views, key=lambda v: v.psnr)[:2]
     assert [(w["name"], w["image"]) for w in farthest.worst_views] == [(v.name, f"seed0-worst{k}.jpg") for k, v in enumerate(lowest)]
     assert all(result.with_name(w["image"]).stat().st_size > 1000 for w in farthest.worst_views)
+    assert all(r.num_gaussians and r.num_gaussians > 100 for r in rows)  # the tiny scene starts from 1500 points
     # the table reports each run's own numbers: one seed, so no spread
     table = (bench.out / "table.md").read_text()
     assert (f"| {tiny_scene.name} | hpgs | farthest | 1 | 13 | {farthest.test.psnr:.2f} | {farthest.test.ssim:.3f} | "

@@ -11,7 +11,8 @@ Versions of the JSON:
   per-test-view metrics (`test_views`, empty when the trainer did not record them). A final-set reference
   (`hpgs bench --final-set`) also has `final_set_of`, the run it trained the final views of (absent elsewhere,
   and in version-2 files written before it: None), and `worst_views`, the lowest-PSNR test views whose renders
-  (ground truth | render) were kept as JPEGs beside the JSON (empty in files written before it).
+  (ground truth | render) were kept as JPEGs beside the JSON (empty in files written before it), and
+  `num_gaussians` (None before it).
 
 `RunResult.from_json` reads every version; `to_json` writes the current one.
 """
@@ -185,6 +186,8 @@ class RunResult:
     """The selector's work counters summed over rounds (`Selection.work`)."""
     test_views: List[ViewMetrics] = field(default_factory=list)
     """Per test view metrics at the end (empty for runs that did not record them)."""
+    num_gaussians: Optional[int] = None
+    """The splat's size at the end (None in files written before it)."""
     worst_views: List[Dict[str, Any]] = field(default_factory=list)
     """The lowest-PSNR test views, each {name, psnr, image}: `image` is a JPEG beside this JSON (ground truth |
     render), to look at what moved a run's mean."""
@@ -241,7 +244,7 @@ class RunResult:
                 timing=Timing(**_pick(Timing, data["timing"])),
                 **{k: data[k] for k in ("repeat", "smoke", "steps", "data", "dataparser", "num_test_views",
                                         "num_train_views", "num_views_final", "initial_views", "chosen_views",
-                                        "selection_work", "worst_views") if k in data},
+                                        "selection_work", "worst_views", "num_gaussians") if k in data},
                 psnr_per_round=[RoundPsnr(**_pick(RoundPsnr, p)) for p in data.get("psnr_per_round", [])],
                 psnr_at_round_steps={int(k): float(v) for k, v in (data.get("psnr_at_round_steps") or {}).items()},
                 test_views=[ViewMetrics(**_pick(ViewMetrics, v)) for v in data.get("test_views", [])],
