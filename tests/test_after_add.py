@@ -110,3 +110,31 @@ def test_rewind_never_goes_before_the_start_and_bad_values_are_one_line():
     with pytest.raises(AfterAddError, match="refine-steps -1 must be a whole number"):
         AfterAddConfig(refine_steps=-1)
     assert AfterAddConfig().describe() == "off" and not AfterAddConfig().enabled
+
+
+def test_lr_restart_starts_every_schedule_over_and_still_ends_at_the_floor_rate():
+    from hpgs_ns.schedules import DecayMultiplier
+    from hpgs_ns.selection.after_add import apply_after_add
+
+    class Optimizers:  # what apply_after_add reads of nerfstudio's Optimizers
+        def __init__(self, schedulers):
+            self.schedulers = schedulers
+
+    params = [torch.nn.Parameter(torch.zeros(1))]
+    optimizer = torch.optim.Adam(params, lr=1e-2)
+    decay = DecayMultiplier(lr_init=1e-2, lr_final=1e-4, lr_pre_warmup=1e-2, warmup_steps=0, max_steps=80)
+    scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, decay)
+    for _ in range(50):
+        scheduler.step()
+    assert optimizer.param_groups[0]["lr"] == pytest.approx(1e-2 * 0.01 ** (50 / 80))
+    done = apply_after_add(AfterAddConfig(lr_restart=True), None, Optimizers({"means": scheduler}), step=50, end=80)
+    assert done == {"lr_restart_span": 30.0} and optimizer.param_groups[0]["lr"] == pytest.approx(1e-2)
+    for _ in range(15):  # half-way through the 30 steps left: half-way down the decay (geometric)
+        scheduler.step()
+    assert optimizer.param_groups[0]["lr"] == pytest.approx(1e-3)
+    for _ in range(15):
+        scheduler.step()
+    assert optimizer.param_groups[0]["lr"] == pytest.approx(1e-4)  # the run's last step: the floor rate
+    with pytest.raises(AfterAddError, match="lr-restart and lr-rewind"):
+        AfterAddConfig(lr_restart=True, lr_rewind=10)
+    assert AfterAddConfig(lr_restart=True).describe() == "lr-restart True" and AfterAddConfig(lr_restart=True).enabled

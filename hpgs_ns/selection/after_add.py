@@ -10,11 +10,12 @@ Each mechanism below gives the views that arrive late some of what the early one
 from __future__ import annotations
 
 from dataclasses import dataclass, fields
-from typing import Dict, Iterable, Tuple
+from typing import Dict, Iterable, Optional, Tuple
 
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from hpgs_ns.errors import OptionError
+from hpgs_ns.schedules import restart_schedules
 
 
 class AfterAddError(OptionError):
@@ -36,6 +37,11 @@ class AfterAddConfig:
     lr_rewind: int = 0
     """Rewind the learning-rate schedules (the means' decay, the camera optimizer's) by this many steps at each add,
     so the Gaussians can still move to fit the new view. 0: the schedules run from step 0 untouched."""
+    lr_restart: bool = False
+    """At each add, every learning-rate schedule starts over from its initial rate and decays to its final rate by
+    the run's last step (a warm restart squeezed into the steps left), the Gaussians kept: the means can still move
+    to fit a late view, and the run still ends at the floor rate (repeated lr-rewinds can leave it high). Not with
+    lr-rewind."""
     restart_at_views: Tuple[int, ...] = ()
     """Start the splat over when a round brings the number of training views to each of these counts (e.g. 8 16):
     the Gaussians go back to their step-0 state, and the learning-rate schedules and splatfacto's step-keyed
@@ -67,10 +73,14 @@ class AfterAddConfig:
                 raise AfterAddError(f"--pipeline.selection.after-add.{name.replace('_', '-')} {value} must be a whole "
                                     "number of steps >= 0 (0 turns it off)")
 
+        if self.lr_restart and self.lr_rewind:
+            raise AfterAddError("--pipeline.selection.after-add.lr-restart and lr-rewind both move the learning rates "
+                                "at each add: pass one of them")
+
     @property
     def enabled(self) -> bool:
         """Whether an option that runs at every add is on (restarts run at their own rounds)."""
-        return bool(self.refine_steps or self.reset_opacity or self.lr_rewind)
+        return bool(self.refine_steps or self.reset_opacity or self.lr_rewind or self.lr_restart)
 
     def restart_counts(self, initial_views: int, random_start: bool, active_start: bool = False) -> Tuple[int, ...]:
         """The view counts at which the splat restarts, for a run of `initial_views` initial views that started from
@@ -112,8 +122,9 @@ def rewind_schedules(schedulers: Dict[str, object], steps: int, names: Iterable[
     return positions
 
 
-def apply_after_add(config: AfterAddConfig, model, optimizers, step: int) -> Dict[str, float]:
-    """Run the enabled mechanisms for an add at trainer step `step`; returns what was done (for the round log)."""
+def apply_after_add(config: AfterAddConfig, model, optimizers, step: int, end: Optional[int] = None) -> Dict[str, float]:
+    """Run the enabled mechanisms for an add at trainer step `step` of a run that ends at step `end` (lr-restart);
+    returns what was done (for the round log)."""
     done: Dict[str, float] = {}
     if config.refine_steps:
         done["refine_until"] = float(model.extend_refinement(step + config.refine_steps))
@@ -123,6 +134,10 @@ def apply_after_add(config: AfterAddConfig, model, optimizers, step: int) -> Dic
         # Only the schedules that decay: the Gaussians' other groups run at constant rates.
         for name, position in rewind_schedules(optimizers.schedulers, config.lr_rewind).items():
             done[f"lr_position.{name}"] = float(position)
+    if config.lr_restart and end is not None:
+        left = max(int(end) - int(step), 1)
+        restart_schedules(optimizers, span=left)
+        done["lr_restart_span"] = float(left)
     if done:
         CONSOLE.print(f"after add (step {step}): " + ", ".join(f"{k} {v:g}" for k, v in done.items()))
     return done

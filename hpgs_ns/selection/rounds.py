@@ -177,7 +177,7 @@ class SelectionRounds:
                         active_seeds = False
                     self.write_log()
                 elif self.config.after_add.enabled and attrs.optimizers is not None:
-                    self.datamanager.history[-1].after_add = apply_after_add(self.config.after_add, self.model, attrs.optimizers, step)
+                    self.datamanager.history[-1].after_add = apply_after_add(self.config.after_add, self.model, attrs.optimizers, step, end or None)
                     self.write_log()
                 if active_seeds:
                     self.add_seed_points(step, attrs.optimizers)
