@@ -77,6 +77,14 @@ class ActiveDatamanagerConfig(FullImageDatamanagerConfig):
     after each round with the views it added (new points away from the splat join it as Gaussians); too few points
     -> random points, with one line naming the count. `random`: splatfacto's random points (as
     --pipeline.model.random-init True)."""
+    random_points: Literal["cube", "views"] = "cube"
+    """Where a splat with no seed points starts (no point cloud, seed-points random, or active that found too few):
+    `cube`, splatfacto's random points in a cube of side --pipeline.model.random-scale around the origin; `views`,
+    points on the active views' pixel rays at distances around where their optical axes meet, each in its pixel's
+    colour (`hpgs_ns.scenes.view_points`), drawn again from all active views when the splat restarts. Either is a
+    random start for after-add's restarts. --pipeline.model.random-init True keeps the cube."""
+    random_points_count: int = 50000
+    """How many points `random-points views` draws (splatfacto's num-random for its cube)."""
     seed_points_min: int = 100
     """`seed-points active`: fewer triangulated points than this and the splat starts from random points instead
     (one line naming the count), and a restart keeps its step-0 Gaussians. A few hundred accurate points seed a
@@ -206,6 +214,8 @@ class ActiveDatamanager(FullImageDatamanager):
             self._drop_seed_points()
         elif self.seed_points_mode == "active" and test_mode == "val":  # training; ns-eval/ns-viewer ("test") load the checkpoint's
             self._triangulate_seed_points()
+        if self.config.random_points == "views" and test_mode == "val" and "points3D_xyz" not in self.train_dataparser_outputs.metadata:
+            self._view_seed_points()
         self.train_unseen_cameras = self.sample_train_cameras()
 
     # ---- which views are active ----------------------------------------------------------------------------
@@ -300,6 +310,26 @@ class ActiveDatamanager(FullImageDatamanager):
         meta = self.train_dataparser_outputs.metadata
         meta["points3D_xyz"], meta["points3D_rgb"] = points
         CONSOLE.print(f"seed points: {points[0].shape[0]} triangulated from the {len(self.active)} initial views")
+
+    def points_along_active_views(self) -> Tuple[torch.Tensor, torch.Tensor]:
+        """`random-points views` for the active views now: (xyz [N, 3], rgb uint8 [N, 3])."""
+        from hpgs_ns.scenes.view_points import points_along_views
+
+        return points_along_views(self.train_dataset.cameras, self.train_dataset.get_numpy_image, self.active,
+                                  self.config.random_points_count, generator=self.generator)
+
+    def _view_seed_points(self) -> None:
+        """`random-points views` at the start: the splat's random points drawn along the initial views' rays, marked
+        as a random start (`points3D_guessed` in the metadata the model is set up with) so after-add's restarts
+        treat them as one."""
+        if self.config.random_points_count < 1:
+            raise ActiveViewError(f"--pipeline.datamanager.random-points-count {self.config.random_points_count}: "
+                                  "must be at least 1")
+        meta = self.train_dataparser_outputs.metadata
+        meta["points3D_xyz"], meta["points3D_rgb"] = self.points_along_active_views()
+        self.train_dataset.metadata["points3D_guessed"] = True  # what the model is set up with (`metadata`)
+        CONSOLE.print(f"random points: {meta['points3D_xyz'].shape[0]} along the rays of the {len(self.active)} "
+                      "initial views (--pipeline.datamanager.random-points views)")
 
     def triangulation_workspace(self):
         """The run's `TriangulationWorkspace`, made on first use and removed when the datamanager goes (or at exit).

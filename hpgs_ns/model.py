@@ -116,10 +116,14 @@ class HpgsSplatfactoModel(SplatfactoModel):
         self._rasterize = get_rasterization_fn(self.rasterizer_name)
         seed_points = self.seed_points
         colours = None
-        self.random_start = not (seed_points is not None and not self.config.random_init and seed_points[1].shape[0] > 0)
-        """Started from splatfacto's random points: no point cloud, random-init, or seed-points random (after-add
-        restart-random-starts reads it)."""
-        if not self.random_start:
+        seeded = seed_points is not None and not self.config.random_init and seed_points[1].shape[0] > 0
+        guessed = seeded and bool(self.kwargs.get("metadata", {}).get("points3D_guessed"))
+        self.random_start = not seeded or guessed
+        """Started from random points: splatfacto's cube (no point cloud, random-init, or seed-points random) or the
+        datamanager's `random-points views` (after-add restart-random-starts reads it)."""
+        self.view_points_start = guessed
+        """Started from `random-points views`: a restart draws them again from the active views."""
+        if seeded:
             # Splatfacto builds seed colours with `.cuda()`; hand it none and set them below on any device.
             colours = seed_points[1]
             self.seed_points = (seed_points[0], seed_points[1][:0])

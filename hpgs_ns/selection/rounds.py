@@ -172,12 +172,16 @@ class SelectionRounds:
                     self.reset_model(step, attrs.optimizers)
                 elif restarts_at(restart_counts, before, len(self.datamanager.active)):
                     self.reset_model(step, attrs.optimizers, end=end)
+                    reseeded = 0
                     if active_seeds:  # start over from what the active views triangulate now
-                        self.reseed_from_active(step, attrs.optimizers)
+                        reseeded = self.reseed_from_active(step, attrs.optimizers)
                         active_seeds = False
+                    if not reseeded and getattr(self.model, "view_points_start", False) and attrs.optimizers is not None:
+                        self.reseed_from_views(attrs.optimizers)  # too few triangulated (or not active): rays again
                     self.write_log()
                 elif self.config.after_add.enabled and attrs.optimizers is not None:
-                    self.datamanager.history[-1].after_add = apply_after_add(self.config.after_add, self.model, attrs.optimizers, step, end or None)
+                    self.datamanager.history[-1].after_add = apply_after_add(self.config.after_add, self.model, attrs.optimizers,
+                                                                             step, end or None)
                     self.write_log()
                 if active_seeds:
                     self.add_seed_points(step, attrs.optimizers)
@@ -279,6 +283,16 @@ class SelectionRounds:
         CONSOLE.print(what)
         writer.put_scalar("selection/num_gaussians_before_reset", before, step)
         self.write_log()
+
+    def reseed_from_views(self, optimizers) -> int:
+        """`random-points views` at a restart: the splat starts over from points drawn along all active views' rays
+        (not only the initial views'). Recorded in the round's `after_add` (`view_points_restart`)."""
+        dm = self.datamanager
+        xyz, rgb = dm.points_along_active_views()
+        count = self.model.replace_gaussians(xyz, rgb, optimizers)
+        dm.history[-1].after_add = {**dm.history[-1].after_add, "view_points_restart": float(count)}
+        CONSOLE.print(f"restart: the splat starts from {count} random points along the rays of {len(dm.active)} views")
+        return count
 
     def reseed_from_active(self, step: int, optimizers) -> int:
         """`seed-points active` at a restart: the splat starts over from the points the active views triangulate now
