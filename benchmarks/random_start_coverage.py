@@ -1,5 +1,7 @@
 """Where splatfacto's random start puts its points: the share inside the cameras' box and inside the scene's COLMAP
-points (5-95% box per axis), both in nerfstudio's normalised frame, for `--pipeline.model.random-scale` values.
+points (5-95% box per axis), both in nerfstudio's normalised frame, for `--pipeline.model.random-scale` values, and
+the same for `--pipeline.datamanager.random-points views` drawn along the FisherRF protocol's 4 initial (farthest)
+views; plus the share within 2% of the scene's extent of a COLMAP point ("near").
 
 splatfacto samples `num_random` (50000) means uniformly in a cube of side `random-scale` (10) around the origin;
 the dataparsers scale the cameras into [-1, 1]. Prints a table and writes JSON.
@@ -35,6 +37,27 @@ def outputs(folder: Path, parser: str):
     return config.setup().get_dataparser_outputs("train")
 
 
+def views_points(out, count: int) -> np.ndarray:
+    """`random-points views` along the FisherRF start's 4 farthest views (colours not needed here)."""
+    import torch
+
+    from hpgs_ns.scenes.view_points import points_along_views
+    from hpgs_ns.selectors.farthest import farthest_point_order
+
+    cameras = out.cameras
+    views = sorted(farthest_point_order(cameras.camera_to_worlds[:, :3, 3], 4, start=0))
+    blank = lambda view: np.zeros((int(cameras.height[view]), int(cameras.width[view]), 3), np.uint8)  # noqa: E731
+    xyz, _ = points_along_views(cameras, blank, views, count, torch.Generator().manual_seed(0))
+    return xyz.numpy()
+
+
+def share_near(points: np.ndarray, colmap: np.ndarray, extent: float, fraction: float = 0.02) -> float:
+    from sklearn.neighbors import NearestNeighbors
+
+    distance = NearestNeighbors(n_neighbors=1).fit(colmap).kneighbors(points)[0][:, 0]
+    return float((distance < fraction * extent).mean())
+
+
 def share_inside(points: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> float:
     return float(np.all((points >= lo) & (points <= hi), axis=1).mean())
 
@@ -61,21 +84,27 @@ def main() -> None:
         if xyz is not None:
             xyz = xyz.numpy()
             row["points_box"] = [np.percentile(xyz, 5, 0).tolist(), np.percentile(xyz, 95, 0).tolist()]
-        for scale in args.scales:
-            random = unit * scale
+        starts = {str(scale): unit * scale for scale in args.scales}
+        starts["views"] = views_points(out, args.num_random)
+        for name, random in starts.items():
             entry = {"in_cameras_box": share_inside(random, centres.min(0), centres.max(0))}
             if "points_box" in row:
                 entry["in_points_box"] = share_inside(random, *map(np.array, row["points_box"]))
-            row["scales"][str(scale)] = entry
+                extent = float(np.linalg.norm(np.percentile(xyz, 95, 0) - np.percentile(xyz, 5, 0)))
+                entry["near_points"] = share_near(random, xyz, extent)
+            row["scales"][name] = entry
         rows.append(row)
-    print("| scene | " + " | ".join(f"random-scale {s:g}: in cameras' box / in points' box" for s in args.scales) + " |")
-    print("|---" * (len(args.scales) + 1) + "|")
+    names = [str(s) for s in args.scales] + ["views"]
+    heads = [f"random-scale {float(n):g}" if n != "views" else "random-points views" for n in names]
+    print("| scene | " + " | ".join(f"{h}: in cameras' box / in points' box / near a point" for h in heads) + " |")
+    print("|---" * (len(names) + 1) + "|")
     for row in rows:
         cells = []
-        for scale in args.scales:
-            e = row["scales"][str(scale)]
+        for name in names:
+            e = row["scales"][name]
             points = f"{100 * e['in_points_box']:.1f}%" if "in_points_box" in e else "-"
-            cells.append(f"{100 * e['in_cameras_box']:.1f}% / {points}")
+            near = f"{100 * e['near_points']:.1f}%" if "near_points" in e else "-"
+            cells.append(f"{100 * e['in_cameras_box']:.1f}% / {points} / {near}")
         print(f"| {row['scene']} | " + " | ".join(cells) + " |")
     write_json_atomic(args.out, {"num_random": args.num_random, "rows": rows})
     print(f"wrote {args.out}")
