@@ -62,6 +62,7 @@ def points_along_views(cameras: Cameras, image: Callable[[int], np.ndarray], vie
     their pixel (`image(view)`: uint8 [H, W, C] at the camera's size). Returns (xyz float [count, 3],
     rgb uint8 [count, 3])."""
     views = [int(v) for v in views]
+    cameras = cameras.to("cpu")  # the draws are CPU tensors (seeded generator); a restart may find them on the GPU
     if not views or count < 1:
         return torch.zeros(0, 3), torch.zeros(0, 3, dtype=torch.uint8)
     distances = view_distances(cameras, views)
