@@ -1,5 +1,6 @@
 """How many seed points triangulation from the active views yields, how accurate they are, and what a call costs,
-for several feature/matching/verification settings (hpgs_ns.scenes.triangulate.TriangulationSettings), on this CPU.
+for several feature/matching/verification settings (hpgs_ns.scenes.triangulate.TriangulationSettings, and the
+rejected variants of benchmarks/triangulation_variants.py: guided matching, upsampled photos), on this CPU.
 
 Each scene is read as the benchmark suites read it (tune6.toml, real6.toml: the suite's dataparser and options
 over ../shared/data/<path>). Its views are taken in the order a FisherRF run adds them: the 4 farthest-point
@@ -41,7 +42,7 @@ TUNING = ["ethiopian-head", "alexander", "figurine-desk", "snowmiku-plush", "ger
 JUDGING = ["bonsai", "juicebox", "stitch", "mold-gold-cape", "campus-building", "fox"]
 RUNS = {"real6": REPO / "benchmarks" / "results" / "suite", "tune6": REPO / "benchmarks" / "results" / "schedule-pilot"}
 
-# name -> TriangulationSettings fields (the rest at COLMAP's defaults)
+# name -> VariantSettings fields (the rest at COLMAP's defaults); guided* and *-up* run only here (triangulation_variants.py)
 VARIANTS: Dict[str, dict] = {
     "colmap": {},  # (a) today's: COLMAP's SIFT, matcher and RANSAC verification
     "sift-low": {"peak_threshold": 0.002},  # (b) weaker SIFT peaks kept
@@ -133,9 +134,9 @@ def scene_extent(points: np.ndarray) -> float:
 
 
 def measure(outputs, views: List[int], settings, tree, extent: Optional[float]) -> dict:
-    from hpgs_ns.scenes.triangulate import triangulate_views
+    from triangulation_variants import triangulate_variant  # benchmarks/ is on sys.path when this script runs
 
-    xyz, _, info = triangulate_views(outputs.cameras, outputs.image_filenames, views, settings=settings)
+    xyz, _, info = triangulate_variant(outputs.cameras, outputs.image_filenames, views, settings)
     row = {"views": len(views), "points": info.num_points, "ok": info.ok, "failed": info.failed, "seconds": info.seconds["total"],
            "stages": {k: v for k, v in info.seconds.items() if k != "total"}, "pairs_matched": info.pairs_matched,
            "mean_track_length": round(info.mean_track_length, 3), "mean_reprojection_error_px": round(info.mean_reprojection_error, 3)}
@@ -183,6 +184,7 @@ def main() -> None:
         return
 
     from scipy.spatial import cKDTree
+    from triangulation_variants import VariantSettings
 
     from hpgs_ns.scenes.triangulate import DEFAULT_MAX_IMAGE_SIZE, DEFAULT_MIN_POINTS, DEFAULT_SETTINGS, TriangulationSettings
 
@@ -193,7 +195,7 @@ def main() -> None:
         "max_image_size": DEFAULT_MAX_IMAGE_SIZE, "min_points": DEFAULT_MIN_POINTS, "tuning": TUNING, "judging": JUDGING,
         "default": dataclasses.asdict(DEFAULT_SETTINGS), "chosen": CHOSEN,
         "chosen_is_default": TriangulationSettings(**VARIANTS[CHOSEN]) == DEFAULT_SETTINGS,
-        "variants": {k: {**dataclasses.asdict(TriangulationSettings()), **v} for k, v in VARIANTS.items()},
+        "variants": {k: {**dataclasses.asdict(VariantSettings()), **v} for k, v in VARIANTS.items()},
         "note": "one call from scratch per row (a temporary workspace: every view extracted, every pair matched); "
                 "median_distance: median distance to the nearest point of the scene's COLMAP model (all photos), as a fraction "
                 "of the scene extent (5th-95th percentile box diagonal), nerfstudio's normalised frame; within_1pct: fraction "
@@ -213,7 +215,7 @@ def main() -> None:
                       "training_views": len(outputs.image_filenames), "extent": extent})
         results = entry.setdefault("results", {})
         for variant in args.variants:
-            settings = TriangulationSettings(**VARIANTS[variant])
+            settings = VariantSettings(**VARIANTS[variant])
             rows = {int(r["views"]): r for r in results.get(variant, [])}
             for n in args.views:
                 rows[n] = measure(outputs, order["views"][:n], settings, tree, extent)

@@ -20,7 +20,6 @@ from hpgs_ns.scenes.triangulate import (
     colmap_cam_from_world,
     colmap_camera_model,
     epipolar_distance,
-    guided_matches,
     relative_pose,
     seed_points,
     triangulate_views,
@@ -70,36 +69,59 @@ def test_a_point_on_a_nerfstudio_ray_projects_back_to_its_pixel_in_colmap(kind, 
         assert np.abs(projected - pixels.flip(-1).numpy()).max() < 0.05, (model, projected)
 
 
-def test_known_pose_verification_keeps_true_matches_and_drops_a_planted_wrong_one():
-    """The epipolar distance under the known relative pose (lens distortion removed): ~0 px for the projections of
-    one 3D point, large for a match that pairs two different points."""
+def two_views_of_points(num: int = 50):
+    """(pycolmap cameras [2], cam2_from_cam1, pixels [2] of [num, 2]): `num` random 3D points seen by two distorted
+    views 45 degrees apart on the ring."""
     import pycolmap
 
     cameras = look_at_cameras(8, distortion_params=torch.tensor([[0.05, -0.02, 0.0, 0.0, 0.001, -0.002]] * 8))
-    a, b = 0, 1  # 45 degrees apart on the ring
-    points = np.random.default_rng(0).uniform(-0.6, 0.6, (50, 3))
+    a, b = 0, 1
+    points = np.random.default_rng(0).uniform(-0.6, 0.6, (num, 3))
     pixels, colmap_cameras = [], []
     for i in (a, b):
         model, width, height, params = colmap_camera_model(cameras, i)
         colmap_cameras.append(pycolmap.Camera(model=model, width=width, height=height, params=params))
         cam_from_world = pycolmap.Rigid3d(colmap_cam_from_world(cameras.camera_to_worlds[i]))
         pixels.append(np.stack([colmap_cameras[-1].img_from_cam(cam_from_world * p) for p in points]))
+    return colmap_cameras, relative_pose(cameras.camera_to_worlds[a], cameras.camera_to_worlds[b]), pixels
+
+
+def test_known_pose_verification_keeps_true_matches_and_drops_a_planted_wrong_one():
+    """The epipolar distance under the known relative pose (lens distortion removed): ~0 px for the projections of
+    one 3D point, large for a match that pairs two different points."""
+    colmap_cameras, cam2_from_cam1, pixels = two_views_of_points()
     wrong = np.argmax(np.abs(pixels[1][:, 1] - pixels[1][0, 1]))  # point 0's pixel in view a with a far-off point's in b
     points1 = np.concatenate([pixels[0], pixels[0][:1]])
     points2 = np.concatenate([pixels[1], pixels[1][wrong:wrong + 1]])
-    cam2_from_cam1 = relative_pose(cameras.camera_to_worlds[a], cameras.camera_to_worlds[b])
     distance = epipolar_distance(*colmap_cameras, cam2_from_cam1, points1, points2)
     assert distance[:-1].max() < 0.01 and distance[-1] > 20, distance[-1]  # pixels
-    # the matrix form, as guided matching uses it: the diagonal is the true matches
-    every = epipolar_distance(*colmap_cameras, cam2_from_cam1, pixels[0], pixels[1], every_pair=True)
-    assert every.shape == (50, 50) and np.allclose(np.diag(every), distance[:-1], atol=1e-6)
-    # guided matching: only candidates within the band compete, mutual nearest descriptors win
+
+
+def test_the_benchmarks_guided_matching_keeps_mutual_nearest_descriptors_within_the_epipolar_band():
+    """Guided matching, a rejected variant that lives in benchmarks/triangulation_variants.py: its every-pair
+    epipolar distance agrees with the package's on matched points, and only candidates within the band compete."""
+    import sys
+
+    from conftest import REPO
+
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    from triangulation_variants import VariantSettings, epipolar_distance_matrix, guided_matches
+
+    from hpgs_ns.scenes.triangulate import TriangulationSettings
+
+    colmap_cameras, cam2_from_cam1, pixels = two_views_of_points()
+    every = epipolar_distance_matrix(*colmap_cameras, cam2_from_cam1, pixels[0], pixels[1])
+    distance = epipolar_distance(*colmap_cameras, cam2_from_cam1, pixels[0], pixels[1])
+    assert every.shape == (50, 50) and np.allclose(np.diag(every), distance, atol=1e-6)  # the diagonal: true matches
     rng = np.random.default_rng(1)
     descriptors = rng.integers(0, 255, (50, 128)).astype(np.uint8)
     noisy = np.clip(descriptors + rng.integers(-20, 20, (50, 128)), 0, 255).astype(np.uint8)
     matches = guided_matches(descriptors, noisy, every, max_error=4.0, max_ratio=0.9)
     assert len(matches) >= 45 and (matches[:, 0] == matches[:, 1]).all()
     assert len(guided_matches(descriptors, noisy, np.full((50, 50), np.inf), 4.0, 0.9)) == 0  # no band, no match
+    assert VariantSettings(verification="guided").verification == "guided"
+    with pytest.raises(ValueError, match="'ransac' or 'poses'"):
+        TriangulationSettings(verification="guided")  # the package runs only what users run
 
 
 def test_unsupported_camera_types_fail_in_one_line(tmp_path):

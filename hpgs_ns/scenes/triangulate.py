@@ -7,7 +7,9 @@ to `max_exhaustive` views, else each view with its nearest views by camera centr
 with the KNOWN relative pose of the pair (within a few pixels of their epipolar lines; COLMAP's own two-view
 RANSAC, which rejects wide-baseline pairs with few matches, is `settings=COLMAP_DEFAULTS`), and triangulates with
 the poses held fixed, so the points are in the cameras' own frame: nerfstudio's normalised (auto-oriented,
-scaled) frame, the frame of `cameras.camera_to_worlds`, in its units.
+scaled) frame, the frame of `cameras.camera_to_worlds`, in its units. Variants a study rejected (pose-guided
+matching, photos upsampled before SIFT) live in benchmarks/triangulation_variants.py, which plugs its matcher in
+through `TriangulationWorkspace.match_pairs`.
 
 One call (a temporary folder, removed at the end):
 
@@ -56,22 +58,17 @@ class TriangulationSettings:
     """How features are found, matched and verified. `COLMAP_DEFAULTS`: COLMAP's own (SIFT's defaults, two-view
     geometry by RANSAC on an essential/fundamental matrix, at least 15 inliers a pair).
 
-    upscale_to: photos whose longer side is below this (pixels) are upsampled to it before SIFT (0: never).
     peak_threshold: SIFT's peak threshold (COLMAP's default 0.02 / 3; lower finds more, weaker features).
     max_num_features: SIFT features kept per image.
     max_ratio: the matcher's ratio test (second-nearest over nearest descriptor distance).
     verification: "ransac": COLMAP's two-view estimation decides each pair's inlier matches; "poses": the
         matches are checked against the KNOWN relative pose instead (no estimation): a match is kept when both
-        its keypoints lie within `max_epipolar_error` pixels of the other's epipolar line; "guided": the known
-        pose guides the matching itself: each feature is matched (ratio test, cross-check) only among the features
-        of the other view within `max_epipolar_error` pixels of its epipolar line, so wide-baseline pairs whose
-        matches fail the ratio test against the whole image still match.
-    max_epipolar_error: pixels at the size SIFT saw ("poses" and "guided").
+        its keypoints lie within `max_epipolar_error` pixels of the other's epipolar line.
+    max_epipolar_error: pixels at the size SIFT saw ("poses").
     min_num_inliers: a pair needs at least this many inlier matches to be used (RANSAC's minimum and the
         triangulator's `min_num_matches`).
     """
 
-    upscale_to: int = 0
     peak_threshold: float = 0.02 / 3
     max_num_features: int = 8192
     max_ratio: float = 0.8
@@ -80,8 +77,8 @@ class TriangulationSettings:
     min_num_inliers: int = 15
 
     def __post_init__(self) -> None:
-        if self.verification not in ("ransac", "poses", "guided"):
-            raise ValueError(f"verification {self.verification!r}: 'ransac', 'poses' or 'guided'")
+        if self.verification not in ("ransac", "poses"):
+            raise ValueError(f"verification {self.verification!r}: 'ransac' or 'poses'")
 
 
 COLMAP_DEFAULTS = TriangulationSettings()
@@ -259,8 +256,7 @@ class TriangulationWorkspace:
         new = [i for i in views if i not in self._views]
         tick = time.perf_counter()
         for i in new:
-            self._sizes[i] = _write_view_image(Path(image_paths[i]), self.images / view_file(i), max_image_size, models[i][1:3],
-                                               upscale_to=settings.upscale_to)
+            self._sizes[i] = _write_view_image(Path(image_paths[i]), self.images / view_file(i), max_image_size, models[i][1:3])
         info.seconds["images"] = time.perf_counter() - tick
 
         with _quiet_colmap(pycolmap):
@@ -268,7 +264,7 @@ class TriangulationWorkspace:
             if new:
                 extraction = pycolmap.FeatureExtractionOptions()
                 extraction.num_threads = num_threads
-                extraction.max_image_size = max(max_image_size, settings.upscale_to)
+                extraction.max_image_size = max_image_size
                 extraction.sift.peak_threshold = settings.peak_threshold
                 extraction.sift.max_num_features = settings.max_num_features
                 pycolmap.extract_features(self.database, self.images, image_names=[view_file(i) for i in new],
@@ -286,21 +282,8 @@ class TriangulationWorkspace:
 
             tick = time.perf_counter()
             pairs = [p for p in view_pairs(cameras, views, max_exhaustive, neighbours) if p not in self._matched]
-            if pairs and settings.verification == "guided":
-                self._match_guided(pycolmap, cameras, pairs, db_images, settings)
-                self._matched.update(pairs)
-            elif pairs:
-                pair_file = self.root / "pairs.txt"
-                pair_file.write_text("".join(f"{view_file(a)} {view_file(b)}\n" for a, b in pairs))
-                matching = pycolmap.FeatureMatchingOptions()
-                matching.num_threads = num_threads
-                matching.sift.max_ratio = settings.max_ratio
-                matching.skip_geometric_verification = settings.verification == "poses"
-                verification = pycolmap.TwoViewGeometryOptions()
-                verification.min_num_inliers = settings.min_num_inliers
-                pycolmap.match_image_pairs(self.database, matching_options=matching,
-                                           pairing_options=pycolmap.ImportedPairingOptions(match_list_path=str(pair_file)),
-                                           verification_options=verification, device=pycolmap.Device.cpu)
+            if pairs:
+                self.match_pairs(pycolmap, cameras, pairs, db_images, settings, num_threads)
                 if settings.verification == "poses":
                     info.seconds["match"] = time.perf_counter() - tick
                     tick = time.perf_counter()
@@ -336,30 +319,23 @@ class TriangulationWorkspace:
             info.mean_reprojection_error = float(result.compute_mean_reprojection_error())
         return xyz[keep], rgb[keep]
 
-    def _match_guided(self, pycolmap, cameras, pairs, db_images, settings: TriangulationSettings) -> None:
-        """Match each pair among the features near their epipolar lines under the KNOWN relative pose
-        (`guided_matches`); the matches are written both as the pair's matches and as its inlier matches."""
-        database = pycolmap.Database.open(self.database)
-        features: Dict[int, Tuple[np.ndarray, np.ndarray]] = {}
-
-        def read(image_id):
-            if image_id not in features:
-                points = database.read_keypoints(image_id)[:, :2].astype(np.float64)
-                features[image_id] = (points, np.asarray(database.read_descriptors(image_id).data))
-            return features[image_id]
-
-        try:
-            for a, b in pairs:
-                (id1, camera1), (id2, camera2) = db_images[view_file(a)], db_images[view_file(b)]
-                (points1, descriptors1), (points2, descriptors2) = read(id1), read(id2)
-                cam2_from_cam1 = relative_pose(cameras.camera_to_worlds[a], cameras.camera_to_worlds[b])
-                distance = epipolar_distance(camera1, camera2, cam2_from_cam1, points1, points2, every_pair=True)
-                matches = guided_matches(descriptors1, descriptors2, distance, settings.max_epipolar_error, settings.max_ratio)
-                database.write_matches(id1, id2, matches)
-                if len(matches) >= settings.min_num_inliers:
-                    _write_known_pose_geometry(pycolmap, database, id1, id2, matches, cam2_from_cam1)
-        finally:
-            database.close()
+    def match_pairs(self, pycolmap, cameras, pairs: List[Tuple[int, int]], db_images: Dict[str, Tuple[int, object]],
+                    settings: TriangulationSettings, num_threads: int) -> None:
+        """Write these pairs' feature matches into the database: COLMAP's matcher (ratio test `settings.max_ratio`)
+        and, for "ransac", COLMAP's two-view geometry (its inlier matches); "poses" verifies them after this.
+        The one seam for another matcher: a subclass overrides it (benchmarks/triangulation_variants.py's guided
+        matching, which writes inlier matches itself). `db_images`: view file name -> (image id, pycolmap Camera)."""
+        pair_file = self.root / "pairs.txt"
+        pair_file.write_text("".join(f"{view_file(a)} {view_file(b)}\n" for a, b in pairs))
+        matching = pycolmap.FeatureMatchingOptions()
+        matching.num_threads = num_threads
+        matching.sift.max_ratio = settings.max_ratio
+        matching.skip_geometric_verification = settings.verification == "poses"  # the known poses verify instead
+        verification = pycolmap.TwoViewGeometryOptions()
+        verification.min_num_inliers = settings.min_num_inliers
+        pycolmap.match_image_pairs(self.database, matching_options=matching,
+                                   pairing_options=pycolmap.ImportedPairingOptions(match_list_path=str(pair_file)),
+                                   verification_options=verification, device=pycolmap.Device.cpu)
 
     def _verify_with_poses(self, pycolmap, cameras, pairs, db_images, settings: TriangulationSettings) -> None:
         """Each pair's two-view geometry from its KNOWN relative pose: the matches within
@@ -378,7 +354,7 @@ class TriangulationWorkspace:
                 error = epipolar_distance(camera1, camera2, cam2_from_cam1, points1, points2)
                 inliers = matches[error < settings.max_epipolar_error]
                 if len(inliers) >= settings.min_num_inliers:
-                    _write_known_pose_geometry(pycolmap, database, id1, id2, inliers, cam2_from_cam1)
+                    write_known_pose_geometry(pycolmap, database, id1, id2, inliers, cam2_from_cam1)
         finally:
             database.close()
 
@@ -448,7 +424,7 @@ def colmap_cam_from_world(camera_to_world) -> np.ndarray:
     return np.concatenate([rotation_cw, (-rotation_cw @ c2w[:, 3])[:, None]], axis=1)
 
 
-def _write_known_pose_geometry(pycolmap, database, id1: int, id2: int, inliers: np.ndarray, cam2_from_cam1: np.ndarray) -> None:
+def write_known_pose_geometry(pycolmap, database, id1: int, id2: int, inliers: np.ndarray, cam2_from_cam1: np.ndarray) -> None:
     """Store a pair's two-view geometry from its KNOWN relative pose, with these inlier matches [K, 2], in place of
     any COLMAP estimated (the triangulator reads only inlier matches)."""
     geometry = pycolmap.TwoViewGeometry(
@@ -474,13 +450,11 @@ def essential_matrix(cam2_from_cam1: np.ndarray) -> np.ndarray:
     return cross @ cam2_from_cam1[:, :3]
 
 
-def epipolar_distance(camera1, camera2, cam2_from_cam1: np.ndarray, points1: np.ndarray, points2: np.ndarray,
-                      every_pair: bool = False) -> np.ndarray:
+def epipolar_distance(camera1, camera2, cam2_from_cam1: np.ndarray, points1: np.ndarray, points2: np.ndarray) -> np.ndarray:
     """[M] for matched pixels points1 [M, 2] (camera1) and points2 [M, 2] (camera2), pycolmap `Camera`s: the larger
     of the two distances, in pixels, between a point and the epipolar line of its match under the known relative
     pose (lens distortion removed first; a normalised distance times the camera's mean focal length). Points
-    that cannot be undistorted are infinitely far. every_pair: [M1, M2] for every point of points1 [M1, 2] with
-    every point of points2 [M2, 2] instead."""
+    that cannot be undistorted are infinitely far."""
     def normalised(camera, points):
         out = np.asarray(camera.cam_from_img(np.asarray(points, dtype=np.float64).reshape(-1, 2)), dtype=np.float64).reshape(-1, 2)
         return np.concatenate([out, np.ones((len(out), 1))], axis=1)
@@ -491,46 +465,9 @@ def epipolar_distance(camera1, camera2, cam2_from_cam1: np.ndarray, points1: np.
     with np.errstate(divide="ignore", invalid="ignore"):
         scale2 = camera2.mean_focal_length() / np.linalg.norm(line2[:, :2], axis=1)
         scale1 = camera1.mean_focal_length() / np.linalg.norm(line1[:, :2], axis=1)
-        if every_pair:
-            residual = np.abs(line2 @ x2.T)  # [M1, M2]: x2_j . (E x1_i)
-            distance = np.maximum(residual * scale2[:, None], residual * scale1[None, :])
-        else:
-            residual = np.abs((x2 * line2).sum(1))
-            distance = np.maximum(residual * scale2, residual * scale1)
+        residual = np.abs((x2 * line2).sum(1))
+        distance = np.maximum(residual * scale2, residual * scale1)
     return np.where(np.isfinite(distance), distance, np.inf)
-
-
-def guided_matches(descriptors1: np.ndarray, descriptors2: np.ndarray, distance: np.ndarray, max_error: float,
-                   max_ratio: float, max_descriptor_distance: float = 0.7) -> np.ndarray:
-    """[K, 2] matches (index in 1, index in 2) between SIFT descriptors [M1, 128] and [M2, 128] among the pairs
-    whose epipolar `distance` [M1, M2] (pixels) is below `max_error`: each feature's nearest descriptor among
-    those candidates only, kept when it passes the ratio test against the second nearest candidate (none: passes),
-    is within `max_descriptor_distance` (the angle between the descriptors, radians, as COLMAP's matcher) and is
-    mutual (cross-checked)."""
-    if len(descriptors1) == 0 or len(descriptors2) == 0:
-        return np.zeros((0, 2), dtype=np.uint32)
-    d1 = descriptors1.astype(np.float32)
-    d2 = descriptors2.astype(np.float32)
-    d1 /= np.maximum(np.linalg.norm(d1, axis=1, keepdims=True), 1e-12)
-    d2 /= np.maximum(np.linalg.norm(d2, axis=1, keepdims=True), 1e-12)
-    similarity = d1 @ d2.T
-    similarity[~(distance < max_error)] = -1.0  # outside the epipolar band: never a candidate
-    angle = np.arccos(np.clip(similarity, -1.0, 1.0))
-
-    def best(angles):  # per row: (index of the nearest, its angle, the second nearest's angle)
-        if angles.shape[1] == 1:
-            return np.zeros(len(angles), dtype=np.int64), angles[:, 0], np.full(len(angles), np.pi)
-        two = np.argpartition(angles, 1, axis=1)[:, :2]
-        a = np.take_along_axis(angles, two, axis=1)
-        order = np.argsort(a, axis=1)
-        return np.take_along_axis(two, order, 1)[:, 0], np.take_along_axis(a, order, 1)[:, 0], np.take_along_axis(a, order, 1)[:, 1]
-
-    forward, angle1, second1 = best(angle)
-    backward, angle2, second2 = best(angle.T)
-    rows = np.arange(len(angle))
-    keep = (angle1 < max_descriptor_distance) & (angle1 < max_ratio * second1) & (backward[forward] == rows)
-    keep &= (angle2[forward] < max_ratio * second2[forward])
-    return np.stack([rows[keep], forward[keep]], axis=1).astype(np.uint32)
 
 
 def view_pairs(cameras, views: List[int], max_exhaustive: int, neighbours: int) -> List[Tuple[int, int]]:
@@ -559,26 +496,22 @@ def _file_key(path: Path, max_image_size: int) -> Tuple[str, int, float, int]:
     return str(path), stat.st_size, stat.st_mtime, max_image_size
 
 
-def _write_view_image(source: Path, target: Path, max_image_size: int, camera_size: Tuple[int, int],
-                      upscale_to: int = 0) -> Tuple[int, int]:
-    """Write `source` as an RGB PNG, downscaled so its longer side is at most `max_image_size` (or upsampled to
-    `upscale_to` when it is shorter; never upscaled when 0), through a temp file and a rename; returns its
-    (width, height). Its aspect ratio must be its camera's."""
+def _write_view_image(source: Path, target: Path, max_image_size: int, camera_size: Tuple[int, int]) -> Tuple[int, int]:
+    """Write `source` as an RGB PNG, downscaled so its longer side is at most `max_image_size` (never upscaled),
+    through a temp file and a rename; returns its (width, height). Its aspect ratio must be its camera's."""
     width, height = camera_size
     try:
         with Image.open(source) as image:
             if abs(image.width * height - image.height * width) > 0.01 * width * height:
                 raise TriangulationError(f"{source} is {image.width}x{image.height} but its camera says {width}x{height}")
             scale = min(1.0, max_image_size / max(image.size))
-            if upscale_to and max(image.size) < upscale_to:
-                scale = upscale_to / max(image.size)
             size = (max(1, round(image.width * scale)), max(1, round(image.height * scale)))
             if image.mode in ("RGBA", "LA") or (image.mode == "P" and "transparency" in image.info):
                 rgba = image.convert("RGBA")
                 image = Image.alpha_composite(Image.new("RGBA", rgba.size, (255, 255, 255, 255)), rgba)  # Blender's white
             image = image.convert("RGB")
             if image.size != size:
-                image = image.resize(size, Image.Resampling.LANCZOS if scale < 1 else Image.Resampling.BICUBIC)
+                image = image.resize(size, Image.Resampling.LANCZOS)
             tmp = target.with_name(f".{target.name}.tmp.png")
             image.save(tmp, compress_level=1)  # written once, read once: speed over size
             os.replace(tmp, target)
