@@ -336,25 +336,33 @@ def test_a_folder_scene_is_named_after_its_folder(tiny_scene):
     assert (scene.name, scene.dataparser, scene.options) == (tiny_scene.name, "mipnerf360", ())
 
 
+@pytest.mark.shipped_model
 def test_per_scene_preference_models_are_used_and_checked(tmp_path):
     from hpgs_ns.bench.runs import train_args
 
-    scene = tmp_path / "garden"
+    scene = tmp_path / "bonsai"  # its renders trained the shipped default
     (scene / "sparse" / "0").mkdir(parents=True)
     models = tmp_path / "loso"
     models.mkdir()
-    (models / "garden.pt").write_bytes(b"trained without garden")
+    (models / "bonsai.pt").write_bytes(b"trained without bonsai")
     bench = Bench(scenes=[scene], out=tmp_path / "out", selectors=["hpgs", "random"], seeds=[0], references=False,
                   preference_models=models)
     hpgs_job, random_job = bench.jobs()
     args = train_args(bench, hpgs_job, tmp_path)
-    assert args[args.index(f"--{SELECTION_PREFIX}hpgs.model") + 1] == str((models / "garden.pt").resolve())
+    assert args[args.index(f"--{SELECTION_PREFIX}hpgs.model") + 1] == str((models / "bonsai.pt").resolve())
     assert f"--{SELECTION_PREFIX}hpgs.model" not in train_args(bench, random_job, tmp_path)
     settings = run_settings(bench, hpgs_job)
-    assert settings["preference_model"] == provenance.file_hash(models / "garden.pt")
-    (models / "garden.pt").unlink()
-    with pytest.raises(UserError, match="no preference model .*garden.pt for scene 'garden'; train one without that scene"):
+    assert settings["preference_model"] == provenance.file_hash(models / "bonsai.pt")
+    (models / "bonsai.pt").unlink()
+    with pytest.raises(UserError, match="no preference model .*bonsai.pt for scene 'bonsai', and the shipped default saw"):
         train_args(bench, hpgs_job, tmp_path)
+    # a scene the default never saw (a tuning scene) runs the default: it is already a model trained without it
+    other = tmp_path / "room-lab"
+    (other / "sparse" / "0").mkdir(parents=True)
+    bench = Bench(scenes=[other], out=tmp_path / "out2", selectors=["hpgs"], seeds=[0], references=False,
+                  preference_models=models)
+    job, = bench.jobs()
+    assert f"--{SELECTION_PREFIX}hpgs.model" not in train_args(bench, job, tmp_path)
 
 
 @pytest.mark.shipped_model

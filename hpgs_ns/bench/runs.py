@@ -417,27 +417,36 @@ def scene_selector_options(bench: Bench, job: Job) -> Dict[str, Any]:
     return options
 
 
-def default_model_scenes(bench: Bench, jobs: Sequence[Job]) -> List[str]:
-    """Scenes of `jobs` whose preference-model runs would use the shipped default although it saw their renders."""
-    if bench.preference_models is not None or not any(j.name in PREFERENCE_SELECTORS for j in jobs):
-        return []
+def default_model_training_scenes() -> set:
+    """The scenes whose renders trained the shipped default preference model (its checkpoint's record)."""
     import torch  # only here: reading the checkpoint's record needs no model
 
     from hpgs_ns.selectors.preference_features import DEFAULT_MODEL
 
     meta = torch.load(DEFAULT_MODEL, map_location="cpu", weights_only=True).get("meta") or {}
-    trained_on = set((meta.get("training_data") or {}).get("oracle_scenes") or [])
+    return set((meta.get("training_data") or {}).get("oracle_scenes") or [])
+
+
+def default_model_scenes(bench: Bench, jobs: Sequence[Job]) -> List[str]:
+    """Scenes of `jobs` whose preference-model runs would use the shipped default although it saw their renders."""
+    if bench.preference_models is not None or not any(j.name in PREFERENCE_SELECTORS for j in jobs):
+        return []
+    trained_on = default_model_training_scenes()
     return sorted({j.scene.name for j in jobs if j.name in PREFERENCE_SELECTORS and j.scene.name in trained_on})
 
 
 def scene_preference_model(bench: Bench, job: Job) -> Optional[Path]:
-    """The scene's own preference model under --preference-models, for selectors that run one (else None)."""
+    """The scene's own preference model under --preference-models, for selectors that run one (else None: the
+    shipped default, also for a scene without its own model that the default never saw, which is then already a
+    model trained without it)."""
     if bench.preference_models is None or job.name not in PREFERENCE_SELECTORS:
         return None
     path = (Path(bench.preference_models) / f"{job.scene.name}.pt").resolve()
     if not path.is_file():
-        raise UserError(f"hpgs bench: no preference model {path} for scene {job.scene.name!r}; train one without that "
-                         "scene (leave one scene out) or drop --preference-models")
+        if job.scene.name not in default_model_training_scenes():
+            return None
+        raise UserError(f"hpgs bench: no preference model {path} for scene {job.scene.name!r}, and the shipped default "
+                        "saw its renders; train one without that scene (leave one scene out) or drop --preference-models")
     return path
 
 
