@@ -17,6 +17,7 @@ spelling as deprecated aliases that the pipeline moves there.
 
 from __future__ import annotations
 
+import copy
 from dataclasses import MISSING, dataclass, field, fields
 from pathlib import Path
 from typing import Any, Dict, List, Literal, Optional, Sequence, Tuple, Type
@@ -189,6 +190,11 @@ class ActiveDatamanager(FullImageDatamanager):
                 config.dataparser.load_3D_points = load_points
         if test_mode != "inference":  # nerfstudio loads the photos lazily, and asserts their size mid-run
             check_image_sizes([self.train_dataset, self.eval_dataset], self.config.dataparser)
+        # The cameras as the photos on disk were taken. nerfstudio's image cache (filled at the first training step)
+        # undistorts the images and rewrites the dataset's intrinsics and sizes in place, keeping the distortion
+        # coefficients: what reads the photos from disk later (a round's triangulation, random-points views at a
+        # restart) needs these.
+        self.photo_cameras = copy.deepcopy(self.train_dataset.cameras)
         root = Path(self.config.dataparser.data)
         self.image_names: List[str] = [view_name(p, root) for p in self.train_dataset.image_filenames]
         overlap = set(self.test_view_names) & set(self.image_names)
@@ -303,7 +309,7 @@ class ActiveDatamanager(FullImageDatamanager):
         from hpgs_ns.scenes.triangulate import seed_points
 
         self._drop_seed_points()  # the dataparser's points (every photo's) never reach the model
-        points = seed_points(self.train_dataset.cameras, self.train_dataset.image_filenames, self.active,
+        points = seed_points(self.photo_cameras, self.train_dataset.image_filenames, self.active,
                              existing=self.triangulation_workspace(), min_points=self.config.seed_points_min)
         if points is None:
             return
@@ -315,7 +321,7 @@ class ActiveDatamanager(FullImageDatamanager):
         """`random-points views` for the active views now: (xyz [N, 3], rgb uint8 [N, 3])."""
         from hpgs_ns.scenes.view_points import points_along_views
 
-        return points_along_views(self.train_dataset.cameras, self.train_dataset.get_numpy_image, self.active,
+        return points_along_views(self.photo_cameras, self.train_dataset.get_numpy_image, self.active,
                                   self.config.random_points_count, generator=self.generator)
 
     def _view_seed_points(self) -> None:
@@ -347,7 +353,7 @@ class ActiveDatamanager(FullImageDatamanager):
         """`triangulate_views` over the active views now, reusing the workspace: (xyz [N, 3], rgb [N, 3], info)."""
         from hpgs_ns.scenes.triangulate import triangulate_views
 
-        return triangulate_views(self.train_dataset.cameras, self.train_dataset.image_filenames, self.active,
+        return triangulate_views(self.photo_cameras, self.train_dataset.image_filenames, self.active,
                                  existing=self.triangulation_workspace(), min_points=self.config.seed_points_min)
 
     def _keep_points_seen_by_initial_views(self, min_views: int = 2) -> None:
