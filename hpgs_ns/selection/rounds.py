@@ -172,12 +172,16 @@ class SelectionRounds:
                     self.reset_model(step, attrs.optimizers)
                 elif restarts_at(restart_counts, before, len(self.datamanager.active)):
                     self.reset_model(step, attrs.optimizers, end=end)
+                    # random-points views draw again, unless a restart already seeded the splat by triangulation
+                    # (its step-0 Gaussians are then those points)
+                    triangulated = any(h.after_add.get("seed_points_restart", 0) > 0 for h in self.datamanager.history[:-1])
+                    redraw = getattr(self.model, "view_points_start", False) and not triangulated
                     reseeded = 0
                     if active_seeds:  # start over from what the active views triangulate now
-                        reseeded = self.reseed_from_active(step, attrs.optimizers)
+                        reseeded = self.reseed_from_active(step, attrs.optimizers, redraw)
                         active_seeds = False
-                    if not reseeded and getattr(self.model, "view_points_start", False) and attrs.optimizers is not None:
-                        self.reseed_from_views(attrs.optimizers)  # too few triangulated (or not active): rays again
+                    if redraw and not reseeded and attrs.optimizers is not None:
+                        self.reseed_from_views(attrs.optimizers)
                     self.write_log()
                 elif self.config.after_add.enabled and attrs.optimizers is not None:
                     self.datamanager.history[-1].after_add = apply_after_add(self.config.after_add, self.model, attrs.optimizers,
@@ -294,10 +298,11 @@ class SelectionRounds:
         CONSOLE.print(f"restart: the splat starts from {count} random points along the rays of {len(dm.active)} views")
         return count
 
-    def reseed_from_active(self, step: int, optimizers) -> int:
+    def reseed_from_active(self, step: int, optimizers, views_next: bool = False) -> int:
         """`seed-points active` at a restart: the splat starts over from the points the active views triangulate now
-        (not from the initial views' few, or random, points); with too few, from its step-0 Gaussians. Recorded in
-        the round's `after_add` (`seed_points_restart`)."""
+        (not from the initial views' few, or random, points); with too few, from its step-0 Gaussians (or, with
+        `views_next`, from random-points views drawn next). Recorded in the round's `after_add`
+        (`seed_points_restart`)."""
         dm, model = self.datamanager, self.model
         start = time.perf_counter()
         xyz, rgb, info = dm.triangulate_active()
@@ -308,8 +313,9 @@ class SelectionRounds:
         if count:
             CONSOLE.print(f"restart: the splat starts from {count} points triangulated from {len(dm.active)} views")
         else:
-            CONSOLE.print(f"[yellow]restart: {info.message or 'no points triangulated'}; the splat starts from its "
-                          "step-0 Gaussians", soft_wrap=True)
+            instead = "random points along the active views' rays" if views_next else "its step-0 Gaussians"
+            CONSOLE.print(f"[yellow]restart: {info.message or 'no points triangulated'}; the splat starts from {instead}",
+                          soft_wrap=True)
         return count
 
     def add_seed_points(self, step: int, optimizers) -> int:
