@@ -17,6 +17,7 @@ from typing import List, Optional, Type
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes
 from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineConfig
 
+from hpgs_ns.errors import OptionError
 from hpgs_ns.selection.config import SelectionConfig, take_datamanager_options
 from hpgs_ns.selection.rounds import SelectionRounds
 from hpgs_ns.selection.snapshots import Snapshots
@@ -52,6 +53,10 @@ class HpgsPipeline(VanillaPipeline):
     def __init__(self, config: HpgsPipelineConfig, device: str, test_mode="val", *args, **kwargs):
         # Options set on the datamanager after the config was built (a script in the 0.2 spelling).
         take_datamanager_options(config.datamanager, config.selection)
+        if getattr(config.model, "random_init", False) and getattr(config.datamanager, "random_points", "cube") == "views":
+            raise OptionError("--pipeline.model.random-init True starts from splatfacto's cube, so "
+                              "--pipeline.datamanager.random-points views would do nothing; pass one of them "
+                              "(seed-points random with random-points views for rays without the capture's points)")
         super().__init__(config, device, test_mode, *args, **kwargs)
         training = test_mode == "val"
         selection = config.selection

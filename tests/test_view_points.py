@@ -86,17 +86,31 @@ def test_a_run_starts_from_points_in_front_of_its_views_and_redraws_them_at_its_
     first, second = log["rounds"]
     assert first["reset"] and first["after_add"]["view_points_restart"] == 800  # 3 -> 6 views: a restart
     assert not second.get("reset") and "view_points_restart" not in second.get("after_add", {})
-    # the step-0 Gaussians later resets return to are the restart's points: in front of one of the 6 views
+    # the step-0 Gaussians later resets return to are the restart's points: drawn from all 6 views then active
+    # (800 / 6 each, in view order), each block on its own view's rays
     means = model.initial_gaussians["means"]
     assert means.shape[0] == 800
-    views = dm.initial_views + list(dm.history[0].chosen_indices)  # the 6 active at the restart
-    c2w = dm.train_dataset.cameras.camera_to_worlds[torch.tensor(views)]
-    in_front = torch.zeros(800, dtype=torch.bool)
-    for pose in c2w:
-        local = (means - pose[:, 3]) @ pose[:, :3]
-        in_front |= (-local[:, 2] > 0) & (local[:, 0].abs() < -local[:, 2]) & (local[:, 1].abs() < -local[:, 2])
-    assert in_front.all()
+    views = sorted(dm.initial_views + list(dm.history[0].chosen_indices))
+    cams = dm.photo_cameras
+    blocks = np.diff(np.linspace(0, 800, len(views) + 1).round().astype(int)).cumsum()
+    for view, stop, start in zip(views, blocks, [0, *blocks[:-1]]):
+        pose = cams.camera_to_worlds[view]
+        local = (means[start:stop] - pose[:, 3]) @ pose[:, :3]
+        depth = -local[:, 2]
+        u = cams.fx[view] * local[:, 0] / depth + cams.cx[view]
+        v = -cams.fy[view] * local[:, 1] / depth + cams.cy[view]
+        assert (depth > 0).all() and (u >= 0).all() and (u <= cams.width[view]).all()
+        assert (v >= 0).all() and (v <= cams.height[view]).all()
     assert math.isfinite(float(model.means.sum()))
+
+
+def test_random_init_and_random_points_views_together_are_one_line(tiny_scene, tmp_path):
+    from hpgs_ns.errors import OptionError
+
+    cfg = short_config(tiny_scene, tmp_path, steps=10)
+    cfg.pipeline.datamanager.random_points, cfg.pipeline.model.random_init = "views", True
+    with pytest.raises(OptionError, match="random-init True starts from splatfacto's cube, so .*random-points views would do nothing"):
+        run_training(cfg)
 
 
 def test_a_bad_count_is_one_line(tiny_scene, tmp_path):
