@@ -354,6 +354,7 @@ def test_per_scene_preference_models_are_used_and_checked(tmp_path):
     settings = run_settings(bench, hpgs_job)
     assert settings["preference_model"] == provenance.file_hash(models / "bonsai.pt")
     (models / "bonsai.pt").unlink()
+    (models / "garden.pt").write_bytes(b"another scene's model")
     with pytest.raises(UserError, match="no preference model .*bonsai.pt for scene 'bonsai', and the shipped default saw"):
         train_args(bench, hpgs_job, tmp_path)
     # a scene the default never saw (a tuning scene) runs the default: it is already a model trained without it
@@ -363,6 +364,10 @@ def test_per_scene_preference_models_are_used_and_checked(tmp_path):
                   preference_models=models)
     job, = bench.jobs()
     assert f"--{SELECTION_PREFIX}hpgs.model" not in train_args(bench, job, tmp_path)
+    # a folder without models (a typo) is refused, not read as "every scene falls back"
+    bench.preference_models = tmp_path / "typo"
+    with pytest.raises(UserError, match="--preference-models .*typo is not a folder of <scene>.pt models"):
+        train_args(bench, job, tmp_path)
 
 
 @pytest.mark.shipped_model

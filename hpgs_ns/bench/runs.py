@@ -204,6 +204,11 @@ class Bench:
                 todo.append(job)
                 continue
             check_settings(self, job, path)
+        fallback = sorted({j.scene.name for j in todo if j.name in PREFERENCE_SELECTORS and self.preference_models is not None
+                           and scene_preference_model(self, j) is None})
+        if fallback:
+            CONSOLE.print(f"hpgs bench: no model in {self.preference_models} for {', '.join(fallback)}: they run the shipped "
+                          "default preference model, which never saw their renders", soft_wrap=True)
         seen = default_model_scenes(self, todo)
         if seen:
             CONSOLE.print(f"[yellow]hpgs bench: the default preference model was trained on renders of {', '.join(seen)}; "
@@ -441,7 +446,11 @@ def scene_preference_model(bench: Bench, job: Job) -> Optional[Path]:
     model trained without it)."""
     if bench.preference_models is None or job.name not in PREFERENCE_SELECTORS:
         return None
-    path = (Path(bench.preference_models) / f"{job.scene.name}.pt").resolve()
+    folder = Path(bench.preference_models)
+    if not folder.is_dir() or not any(folder.glob("*.pt")):
+        raise UserError(f"hpgs bench: --preference-models {folder} is not a folder of <scene>.pt models; train them "
+                        "leaving one scene out (docs/benchmark.md) or drop --preference-models")
+    path = (folder / f"{job.scene.name}.pt").resolve()
     if not path.is_file():
         if job.scene.name not in default_model_training_scenes():
             return None
@@ -460,6 +469,8 @@ def keep_candidate_log(log: Path, keep: Path) -> None:
 def keep_worst_views(metrics: dict, run_dir: Path, result: Path) -> List[dict]:
     """Copy the final eval's worst-view JPEGs beside the run's result (`<stem>-worst<k>.jpg`): the run folder
     (checkpoints) is often left on the GPU machine, and one view can move a scene's mean by a dB."""
+    for stale in result.parent.glob(f"{result.stem}-worst*.jpg"):  # an earlier run's, which kept more views
+        stale.unlink()
     kept = []
     for rank, view in enumerate(metrics.get("worst_views", [])):
         source = run_dir / view["image"]
