@@ -95,11 +95,11 @@ def summarise(runs) -> dict:
     return summary
 
 
-def arm_gains(runs, arm: str, base: str) -> dict:
-    """{scene: {seed: PSNR of `arm`'s progressive run - `base`'s}} over the (scene, seed) pairs both have."""
+def arm_gains(runs, arm: str, base: str, selector: str = "farthest") -> dict:
+    """{scene: {seed: PSNR of `arm`'s `selector` run - `base`'s}} over the (scene, seed) pairs both have."""
     gains = defaultdict(dict)
     for (scene, start, variant), by_seed in runs.items():
-        if start != arm or variant == "final-set":
+        if start != arm or variant != selector:
             continue
         other = runs.get((scene, base, variant), {})
         for seed, test in by_seed.items():
@@ -113,6 +113,7 @@ def compare_arms(runs, pairs) -> list:
     for arm, base in pairs:
         gains = arm_gains(runs, arm, base)
         if not gains:
+            print(f"{arm} - {base}: no runs of both on the same scene and seed")
             continue
         mean, lo, hi = stats.hierarchical_bootstrap(gains, n_boot=10000, seed=0)
         p = stats.sign_flip_test(list(stats.scene_means(gains).values()), seed=0)

@@ -56,6 +56,9 @@ class HpgsTrainerConfig(TrainerConfig):
     added in them, at the floor rate of the 15000-step default. False: the schedules' own max-steps (hpgs-ns <= 0.3)."""
 
     def __post_init__(self) -> None:
+        if self.final_eval_worst_views < 0:
+            raise OptionError(f"--final-eval-worst-views {self.final_eval_worst_views}: the number of views to save "
+                              "must be >= 0 (0: none)")
         follow_run_length(self)
         # tyro builds this config while it parses the command line: a --data that names a file or nothing is a
         # one-line error before nerfstudio prints anything or makes a run folder. (A config.yml skips __init__.)

@@ -13,6 +13,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 from conftest import run_training, short_config, stock_ns_viewer_page
@@ -157,9 +158,16 @@ def test_stock_ns_eval_and_ns_viewer_open_the_checkpoint(trained, tmp_path):
     from PIL import Image
     height, width = trained["trainer"].pipeline.datamanager.eval_dataset.cameras[0].height.item(), \
         trained["trainer"].pipeline.datamanager.eval_dataset.cameras[0].width.item()
+    eval_dataset = trained["trainer"].pipeline.datamanager.eval_dataset
     for worst in final["worst_views"]:
         image = Image.open(trained["cfg"].final_eval_json.with_name(worst["image"]))
         assert image.size == (2 * width, height) and image.format == "JPEG"
+        # left: the test photo itself (JPEG's loss aside), right: the render
+        index = trained["trainer"].pipeline.datamanager.test_view_names.index(worst["name"])
+        photo = eval_dataset.get_numpy_image(index)[..., :3].astype(float)
+        pixels = np.asarray(image, dtype=float)
+        assert np.abs(pixels[:, :width] - photo).mean() < 8  # of 255: JPEG at quality 90, 4:2:0 chroma
+        assert np.abs(pixels[:, width:] - photo).mean() > np.abs(pixels[:, :width] - photo).mean()
     assert final["num_gaussians"] == trained["trainer"].pipeline.model.num_points
 
     stock_ns_viewer_page(config, env)

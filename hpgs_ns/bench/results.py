@@ -10,9 +10,9 @@ Versions of the JSON:
 * 2: nested parts (`test`, `timing`, `provenance`), the scene's `data` folder and `dataparser` as fields, and
   per-test-view metrics (`test_views`, empty when the trainer did not record them). A final-set reference
   (`hpgs bench --final-set`) also has `final_set_of`, the run it trained the final views of (absent elsewhere,
-  and in version-2 files written before it: None), and `worst_views`, the lowest-PSNR test views whose renders
-  (ground truth | render) were kept as JPEGs beside the JSON (empty in files written before it), and
-  `num_gaussians` (None before it).
+  and in version-2 files written before it: None). Every run written since 0.4 also has `worst_views`, the
+  lowest-PSNR test views whose renders (ground truth | render) were kept as JPEGs beside the JSON, and
+  `num_gaussians` (empty and None in files written before them).
 
 `RunResult.from_json` reads every version; `to_json` writes the current one.
 """

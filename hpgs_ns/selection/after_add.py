@@ -38,10 +38,10 @@ class AfterAddConfig:
     """Rewind the learning-rate schedules (the means' decay, the camera optimizer's) by this many steps at each add,
     so the Gaussians can still move to fit the new view. 0: the schedules run from step 0 untouched."""
     lr_restart: bool = False
-    """At each add, every learning-rate schedule starts over from its initial rate and decays to its final rate by
-    the run's last step (a warm restart squeezed into the steps left), the Gaussians kept: the means can still move
-    to fit a late view, and the run still ends at the floor rate (repeated lr-rewinds can leave it high). Not with
-    lr-rewind."""
+    """At each add, every learning-rate schedule starts over (from its initial rate; schedules with a warm-up, such as
+    the camera optimizer's, warm up again) and decays to its final rate by the end of the run (a warm restart
+    squeezed into the steps left), the Gaussians kept: the means can still move to fit a late view, and the run
+    still ends at the floor rate (repeated lr-rewinds can leave it high). Not with lr-rewind."""
     restart_at_views: Tuple[int, ...] = ()
     """Start the splat over when a round brings the number of training views to each of these counts (e.g. 8 16):
     the Gaussians go back to their step-0 state, and the learning-rate schedules and splatfacto's step-keyed
