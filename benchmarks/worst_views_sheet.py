@@ -1,0 +1,64 @@
+"""A contact sheet of the runs' worst test views: each result's `seed<k>-worst0.jpg` (ground truth | render, kept by
+`hpgs bench` since 0.4) with its scene, folder, seed, view and PSNR, so a floater that moves a scene's mean can be
+seen, not only counted.
+
+    python benchmarks/worst_views_sheet.py benchmarks/results/tune-full [--rank 0] [--out worst_views.png]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+from PIL import Image  # noqa: E402
+
+
+def entries(root: Path, rank: int):
+    """(title, image path) for every result under `root` that kept a worst view of this rank, sorted by its PSNR."""
+    found = []
+    for result in sorted(root.rglob("seed*.json")):
+        try:
+            data = json.loads(result.read_text())
+        except ValueError:
+            continue
+        worst = data.get("worst_views") or []
+        if len(worst) <= rank or not (result.parent / worst[rank]["image"]).is_file():
+            continue
+        view = worst[rank]
+        label = "/".join(result.relative_to(root).parts[:-1])
+        title = f"{label} s{data['seed']}\n{Path(view['name']).name}: {view['psnr']:.1f} dB (mean {data['test']['psnr']:.1f})"
+        found.append((view["psnr"], title, result.parent / view["image"]))
+    return [(title, path) for _, title, path in sorted(found)]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("root", type=Path)
+    parser.add_argument("--rank", type=int, default=0, help="0: each run's worst view, 1: its second worst")
+    parser.add_argument("--columns", type=int, default=3)
+    parser.add_argument("--out", type=Path, default=None, help="default: ROOT/worst_views.png")
+    args = parser.parse_args()
+    items = entries(args.root, args.rank)
+    if not items:
+        raise SystemExit(f"no worst-view JPEGs under {args.root} (runs written by hpgs bench >= 0.4 keep them)")
+    rows = math.ceil(len(items) / args.columns)
+    fig, axes = plt.subplots(rows, args.columns, figsize=(5 * args.columns, 2.6 * rows), squeeze=False)
+    for ax in axes.flat:
+        ax.axis("off")
+    for ax, (title, path) in zip(axes.flat, items):
+        ax.imshow(Image.open(path))
+        ax.set_title(title, fontsize=7)
+    fig.tight_layout()
+    out = args.out or args.root / "worst_views.png"
+    fig.savefig(out, dpi=90)
+    print(f"{len(items)} runs -> {out}")
+
+
+if __name__ == "__main__":
+    main()
