@@ -20,7 +20,7 @@ from nerfstudio.cameras.cameras import Cameras
 NEAR, FAR = 0.5, 3.0
 """Distances along a ray, as multiples of the view's distance to where the optical axes meet: from half-way
 there (an object's near side) to three times as far (a room's walls behind it). Sampled uniformly in 1 / distance,
-as NeRF samples unbounded scenes: denser near the object than in the background."""
+as NeRF samples unbounded scenes: denser near the object than in the background. A design rule, not tuned."""
 
 
 def axes_meeting_point(centres: torch.Tensor, forwards: torch.Tensor) -> Optional[torch.Tensor]:
