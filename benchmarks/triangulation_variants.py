@@ -29,6 +29,7 @@ from hpgs_ns.scenes.triangulate import (
     TriangulationSettings,
     TriangulationWorkspace,
     essential_matrix,
+    normalised_rays,
     relative_pose,
     triangulate_views,
     view_file,
@@ -128,11 +129,7 @@ def epipolar_distance_matrix(camera1, camera2, cam2_from_cam1: np.ndarray, point
                              points2: np.ndarray) -> np.ndarray:
     """[M1, M2]: `hpgs_ns.scenes.triangulate.epipolar_distance` for every point of points1 [M1, 2] (camera1) with
     every point of points2 [M2, 2] (camera2): pixels, the larger of the two point-to-epipolar-line distances."""
-    def normalised(camera, points):
-        out = np.asarray(camera.cam_from_img(np.asarray(points, dtype=np.float64).reshape(-1, 2)), dtype=np.float64).reshape(-1, 2)
-        return np.concatenate([out, np.ones((len(out), 1))], axis=1)
-
-    x1, x2 = normalised(camera1, points1), normalised(camera2, points2)
+    x1, x2 = normalised_rays(camera1, points1), normalised_rays(camera2, points2)
     e = essential_matrix(cam2_from_cam1)
     line2, line1 = x1 @ e.T, x2 @ e  # epipolar lines in image 2 (of x1) and in image 1 (of x2)
     with np.errstate(divide="ignore", invalid="ignore"):

@@ -141,26 +141,14 @@ def test_lr_restart_starts_every_schedule_over_and_still_ends_at_the_floor_rate(
 
 
 def test_lr_restart_runs_at_the_rounds_add_and_the_run_ends_at_the_floor_rate(tiny_scene, tmp_path):
-    from nerfstudio.engine.trainer import Trainer
-
     cfg = short_config(tiny_scene, tmp_path, steps=TOTAL, select_at=(ROUND,), rounds=1, selector="random")
     cfg.pipeline.selection.after_add = AfterAddConfig(lr_restart=True)
-    seen = {}
-    original = Trainer.train_iteration
-
-    def spy(self, step):
-        seen[step] = self.optimizers.optimizers["means"].param_groups[0]["lr"]
-        return original(self, step)
-
-    Trainer.train_iteration = spy
-    try:
-        trainer = run_training(cfg)
-    finally:
-        Trainer.train_iteration = original
+    seen: dict = {}
+    trainer = train_with_spy(cfg, seen)
     log = json.loads((Path(trainer.base_dir) / "selected_views.json").read_text())
     assert log["rounds"][0]["after_add"] == {"lr_restart_span": TOTAL - ROUND}
     schedule = trainer.optimizers.schedulers["means"].lr_lambdas[0]
     initial, final = schedule.lr_init, schedule.lr_final
-    assert seen[ROUND - 1] == pytest.approx(initial * (final / initial) ** ((ROUND - 1) / TOTAL))
-    assert seen[ROUND] == pytest.approx(initial)  # back to the start at the add
+    assert seen[ROUND - 1]["lr"] == pytest.approx(initial * (final / initial) ** ((ROUND - 1) / TOTAL))
+    assert seen[ROUND]["lr"] == pytest.approx(initial)  # back to the start at the add
     assert trainer.optimizers.optimizers["means"].param_groups[0]["lr"] == pytest.approx(final)

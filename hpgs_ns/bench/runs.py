@@ -17,6 +17,7 @@ dataparser and options. `hpgs bench --stress pose-noise exposure corrupt` also r
 from __future__ import annotations
 
 import dataclasses
+import functools
 import gzip
 import json
 import os
@@ -422,14 +423,20 @@ def scene_selector_options(bench: Bench, job: Job) -> Dict[str, Any]:
     return options
 
 
-def default_model_training_scenes() -> set:
+def default_model_training_scenes() -> frozenset:
     """The scenes whose renders trained the shipped default preference model (its checkpoint's record)."""
-    import torch  # only here: reading the checkpoint's record needs no model
-
     from hpgs_ns.selectors.preference_features import DEFAULT_MODEL
 
-    meta = torch.load(DEFAULT_MODEL, map_location="cpu", weights_only=True).get("meta") or {}
-    return set((meta.get("training_data") or {}).get("oracle_scenes") or [])
+    return _model_training_scenes(Path(DEFAULT_MODEL))
+
+
+@functools.lru_cache(maxsize=4)
+def _model_training_scenes(path: Path) -> frozenset:
+    # read once per model file: scene_preference_model asks for every job, several times a sweep
+    import torch  # only here: reading the checkpoint's record needs no model
+
+    meta = torch.load(path, map_location="cpu", weights_only=True).get("meta") or {}
+    return frozenset((meta.get("training_data") or {}).get("oracle_scenes") or [])
 
 
 def default_model_scenes(bench: Bench, jobs: Sequence[Job]) -> List[str]:

@@ -450,16 +450,18 @@ def essential_matrix(cam2_from_cam1: np.ndarray) -> np.ndarray:
     return cross @ cam2_from_cam1[:, :3]
 
 
+def normalised_rays(camera, points: np.ndarray) -> np.ndarray:
+    """[M, 3] homogeneous normalised (undistorted, unit focal) coordinates of pixels [M, 2] of a pycolmap `Camera`."""
+    out = np.asarray(camera.cam_from_img(np.asarray(points, dtype=np.float64).reshape(-1, 2)), dtype=np.float64).reshape(-1, 2)
+    return np.concatenate([out, np.ones((len(out), 1))], axis=1)
+
+
 def epipolar_distance(camera1, camera2, cam2_from_cam1: np.ndarray, points1: np.ndarray, points2: np.ndarray) -> np.ndarray:
     """[M] for matched pixels points1 [M, 2] (camera1) and points2 [M, 2] (camera2), pycolmap `Camera`s: the larger
     of the two distances, in pixels, between a point and the epipolar line of its match under the known relative
     pose (lens distortion removed first; a normalised distance times the camera's mean focal length). Points
     that cannot be undistorted are infinitely far."""
-    def normalised(camera, points):
-        out = np.asarray(camera.cam_from_img(np.asarray(points, dtype=np.float64).reshape(-1, 2)), dtype=np.float64).reshape(-1, 2)
-        return np.concatenate([out, np.ones((len(out), 1))], axis=1)
-
-    x1, x2 = normalised(camera1, points1), normalised(camera2, points2)
+    x1, x2 = normalised_rays(camera1, points1), normalised_rays(camera2, points2)
     e = essential_matrix(cam2_from_cam1)
     line2, line1 = x1 @ e.T, x2 @ e  # epipolar lines in image 2 (of x1) and in image 1 (of x2)
     with np.errstate(divide="ignore", invalid="ignore"):
