@@ -331,6 +331,16 @@ class HpgsSplatfactoModel(SplatfactoModel):
         return k
 
     @torch.no_grad()
+    def opaque_points(self) -> Tuple[torch.Tensor, torch.Tensor]:
+        """The centres [K, 3] and base colours [K, 3] (uint8, from the SH DC term) of the Gaussians at least
+        cull-alpha-thresh opaque, the ones splatfacto's culling keeps: what `after-add restart-from splat` starts
+        from."""
+        keep = torch.sigmoid(self.opacities.squeeze(-1)) >= self.config.cull_alpha_thresh
+        dc = self.features_dc[keep]
+        rgb = splatfacto.SH2RGB(dc) if self.config.sh_degree > 0 else torch.sigmoid(dc)
+        return self.means[keep].detach().cpu(), (rgb.clamp(0, 1) * 255).round().to(torch.uint8).cpu()
+
+    @torch.no_grad()
     def replace_gaussians(self, xyz: torch.Tensor, rgb: torch.Tensor, optimizers) -> int:
         """Drop every Gaussian and start from the points `xyz` [K, 3] with colours `rgb` [K, 3] (uint8), as
         splatfacto's `populate_modules` starts from seed points (`add_gaussians`); they become the state later

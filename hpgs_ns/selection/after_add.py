@@ -10,7 +10,7 @@ Each mechanism below gives the views that arrive late some of what the early one
 from __future__ import annotations
 
 from dataclasses import dataclass, fields
-from typing import Dict, Iterable, Optional, Tuple
+from typing import Dict, Iterable, Literal, Optional, Tuple
 
 from nerfstudio.utils.rich_utils import CONSOLE
 
@@ -61,6 +61,14 @@ class AfterAddConfig:
     is thin (fox: 160 points from 4 views, some 2000 from 16), and what the splat grew from it is locked in as a
     random start's is (fox, FisherRF protocol: 25.1 / 23.1 dB from 4 views' points against 28.4 from the final 20
     views' at step 0). False: an active start that found enough points never restarts."""
+
+    restart_from: Literal["start", "splat"] = "start"
+    """What a restart starts from. `start`: the run's step-0 points (its seed points or random points; with
+    `seed-points active`, what the active views triangulate then; with `random-points views`, points drawn again
+    along the active views' rays). `splat`: the splat's own Gaussians as points (centres and base colours of those
+    at least cull-alpha-thresh opaque) with fresh sizes, rotations and opacities: where the views so far put
+    surfaces, without the shapes and opacities the first views fixed. Meant for captures without seed points, whose
+    restarts otherwise begin from random points again."""
 
     def __post_init__(self) -> None:
         self.restart_at_views = tuple(int(n) for n in self.restart_at_views)

@@ -158,6 +158,11 @@ class SelectionRounds:
                     CONSOLE.print(f"active seed points: the splat restarts at {at} views from what the active views "
                                   "triangulate then (--pipeline.selection.after-add.restart-active-starts False: never)",
                                   soft_wrap=True)
+            if self.config.after_add.restart_from == "splat":
+                CONSOLE.print(f"restart-from splat: restarts at {' and '.join(map(str, restart_counts))} views start from the "
+                              "splat's own opaque Gaussians" if restart_counts else
+                              "[yellow]restart-from splat does nothing in this run: no restart is due "
+                              "(--pipeline.selection.after-add.restart-at-views sets when)", soft_wrap=True)
         if self.config.reset_after_add or restart_counts:
             self.model.keep_initial_for_resets()
 
@@ -171,17 +176,12 @@ class SelectionRounds:
                 if self.config.reset_after_add:
                     self.reset_model(step, attrs.optimizers)
                 elif restarts_at(restart_counts, before, len(self.datamanager.active)):
+                    from_splat = self.config.after_add.restart_from == "splat" and attrs.optimizers is not None
+                    splat_points = self.model.opaque_points() if from_splat else None  # before the reset drops them
                     self.reset_model(step, attrs.optimizers, end=end)
-                    # random-points views draw again, unless a restart already seeded the splat by triangulation
-                    # (its step-0 Gaussians are then those points)
-                    triangulated = any(h.after_add.get("seed_points_restart", 0) > 0 for h in self.datamanager.history[:-1])
-                    redraw = getattr(self.model, "view_points_start", False) and not triangulated
-                    reseeded = 0
-                    if active_seeds:  # start over from what the active views triangulate now
-                        reseeded = self.reseed_from_active(step, attrs.optimizers, redraw)
-                        active_seeds = False
-                    if redraw and not reseeded and attrs.optimizers is not None:
-                        self.reseed_from_views(attrs.optimizers)
+                    if splat_points is None or not self.reseed_from_splat(*splat_points, attrs.optimizers):
+                        self.reseed_from_start(step, attrs.optimizers, active_seeds)
+                        active_seeds = False  # an active restart triangulated every active view already
                     self.write_log()
                 elif self.config.after_add.enabled and attrs.optimizers is not None:
                     self.datamanager.history[-1].after_add = apply_after_add(self.config.after_add, self.model, attrs.optimizers,
@@ -287,6 +287,32 @@ class SelectionRounds:
         CONSOLE.print(what)
         writer.put_scalar("selection/num_gaussians_before_reset", before, step)
         self.write_log()
+
+    def reseed_from_start(self, step: int, optimizers, active_seeds: bool) -> None:
+        """A restart's start points when it does not start from the splat: with `seed-points active`, what the
+        active views triangulate now; with `random-points views`, points drawn again along the active views' rays
+        (unless an earlier restart already seeded the splat by triangulation: its step-0 Gaussians are those
+        points); otherwise the step-0 Gaussians the reset put back."""
+        triangulated = any(h.after_add.get("seed_points_restart", 0) > 0 for h in self.datamanager.history[:-1])
+        redraw = getattr(self.model, "view_points_start", False) and not triangulated
+        reseeded = self.reseed_from_active(step, optimizers, redraw) if active_seeds else 0
+        if redraw and not reseeded and optimizers is not None:
+            self.reseed_from_views(optimizers)
+
+    def reseed_from_splat(self, xyz: torch.Tensor, rgb: torch.Tensor, optimizers) -> int:
+        """`after-add restart-from splat`: the splat starts over from its own opaque Gaussians' centres and colours
+        (taken before the reset). None opaque: it keeps the step-0 Gaussians the reset put back, and says so.
+        Recorded in the round's `after_add` (`splat_points_restart`)."""
+        record = self.datamanager.history[-1]
+        if xyz.shape[0] == 0:
+            CONSOLE.print("[yellow]restart-from splat: no Gaussian is opaque enough to keep; the splat starts from its "
+                          "step-0 Gaussians", soft_wrap=True)
+            return 0
+        count = self.model.replace_gaussians(xyz, rgb, optimizers)
+        record.after_add = {**record.after_add, "splat_points_restart": float(count)}
+        CONSOLE.print(f"restart: the splat starts from its own {count} opaque Gaussians as points "
+                      f"({len(self.datamanager.active)} views)")
+        return count
 
     def reseed_from_views(self, optimizers) -> int:
         """`random-points views` at a restart: the splat starts over from points drawn along all active views' rays
