@@ -6,7 +6,9 @@ main at 2bbac07 (`benchmarks/results/suite/<scene>/fisherrf/farthest/`) for the 
 run PSNR per seed, final-set, schedule cost (final-set - run, same seed), then the bars: mean schedule cost with its
 95% paired interval (hierarchical bootstrap over scenes, `hpgs_ns.bench.stats`), fox's PSNR, the seed SD of
 `farthest` pooled over scenes; and each trainer arm (a start folder such as `colmap-r16`) against another (by default
-`colmap`), paired by scene and seed, with its interval and sign-flip p; writes them as JSON.
+`colmap`), paired by scene and seed, with its interval and sign-flip p; writes them as JSON. An arm without final-set
+runs of its own (`colmap-r20`) uses its start mode's (`colmap`) when its views do not depend on training (farthest,
+random).
 
     python benchmarks/judge_table.py [--out benchmarks/results/judge-full/summary.json]
     python benchmarks/judge_table.py --root benchmarks/results/tune-full --out benchmarks/results/tune-full/summary.json \
@@ -28,6 +30,9 @@ ROOT = Path("benchmarks/results/judge-full")
 BEFORE = Path("benchmarks/results/suite")  # main at 2bbac07, same protocol
 # final-set of main at 2bbac07 (../shared/design/schedule-pilot.md: fox's farthest views, seeds 0/1, H100)
 FINAL_SET_BEFORE = {"fox": {0: 24.00, 1: 24.49}}
+# Selectors whose views do not depend on training (same seed, same views): an arm of the trainer (a start folder
+# such as `colmap-r20`) then shares its start mode's final-set (`colmap`'s).
+VIEWS_WITHOUT_TRAINING = ("farthest", "random")
 BARS = {"cost_mean": 0.3, "cost_hi": 0.6, "fox": 23.5, "seed_sd": 0.4}
 
 
@@ -68,15 +73,20 @@ def summarise(runs) -> dict:
         costs, seed_groups = {}, []
         for scene in scenes:
             selectors = sorted(v for (sc, st, v) in runs if sc == scene and st == start and v != "final-set")
-            run = {s: t["psnr"] for s, t in runs.get((scene, start, selectors[0] if selectors else "farthest"), {}).items()}
-            final = {s: t["psnr"] for s, t in runs.get((scene, start, "final-set"), {}).items()}
+            selector = selectors[0] if selectors else "farthest"
+            run = {s: t["psnr"] for s, t in runs.get((scene, start, selector), {}).items()}
+            final_from = start
+            if (scene, start, "final-set") not in runs and selector in VIEWS_WITHOUT_TRAINING:
+                final_from = start.split("-")[0]  # colmap-r20 trains colmap's views: its final-set is colmap's
+            final = {s: t["psnr"] for s, t in runs.get((scene, final_from, "final-set"), {}).items()}
             if not run:
                 continue
             cost = {s: final[s] - run[s] for s in run if s in final}
             if cost:
                 costs[scene] = cost
             seed_groups.append(list(run.values()))
-            table.append({"scene": scene, "start": start, "run": run, "final_set": final, "cost": cost,
+            table.append({"scene": scene, "start": start, "run": run, "final_set": final, "final_set_of": final_from,
+                          "cost": cost,
                           "before_2bbac07": before(scene) if start == "colmap" else {},
                           "final_set_before_2bbac07": FINAL_SET_BEFORE.get(scene, {}) if start == "colmap" else {}})
         entry = {"scenes": sorted(costs), "pairs": sum(len(v) for v in costs.values())}
