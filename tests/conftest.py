@@ -97,6 +97,26 @@ def run_training(cfg):
     return trainer
 
 
+def run_training_seeing(cfg, see):
+    """`run_training`, recording `see(trainer, step)` before each iteration (after that step's callbacks: the round
+    and the model's step callback). Returns (trainer, {step: what `see` returned})."""
+    from nerfstudio.engine.trainer import Trainer
+
+    seen = {}
+    original = Trainer.train_iteration
+
+    def spy(self, step):
+        seen[step] = see(self, step)
+        return original(self, step)
+
+    Trainer.train_iteration = spy
+    try:
+        trainer = run_training(cfg)
+    finally:
+        Trainer.train_iteration = original
+    return trainer, seen
+
+
 def stock_ns_viewer_page(config: Path, env: dict) -> str:
     """Run stock `ns-viewer --load-config CONFIG` (nerfstudio's own entry point and tyro CLI, under `env`'s
     variables) and return the page its server serves once the viewer has loaded the checkpoint and built its scene.

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import run_training, short_config
+from conftest import run_training_seeing, short_config
 
 from hpgs_ns.selection.after_add import AfterAddConfig, AfterAddError, rewind_schedules
 
@@ -30,25 +30,19 @@ def after_add_config(scene: Path, out: Path, steps: int):
     return cfg
 
 
+def see(trainer, step) -> dict:
+    model = trainer.pipeline.model
+    return {"num_points": model.num_points, "lr": trainer.optimizers.optimizers["means"].param_groups[0]["lr"],
+            "position": trainer.optimizers.schedulers["means"].last_epoch,
+            "max_opacity": float(model.gauss_params["opacities"].max()),
+            "refine_stop": model.strategy.refine_stop_iter,
+            "screen_size_stop": model.strategy.refine_scale2d_stop_iter}
+
+
 def train_with_spy(cfg, seen: dict):
-    from nerfstudio.engine.trainer import Trainer
-
-    original = Trainer.train_iteration
-
-    def spy(self, step):
-        model = self.pipeline.model
-        seen[step] = {"num_points": model.num_points, "lr": self.optimizers.optimizers["means"].param_groups[0]["lr"],
-                      "position": self.optimizers.schedulers["means"].last_epoch,
-                      "max_opacity": float(model.gauss_params["opacities"].max()),
-                      "refine_stop": model.strategy.refine_stop_iter,
-                      "screen_size_stop": model.strategy.refine_scale2d_stop_iter}
-        return original(self, step)
-
-    Trainer.train_iteration = spy
-    try:
-        return run_training(cfg)
-    finally:
-        Trainer.train_iteration = original
+    trainer, steps = run_training_seeing(cfg, see)
+    seen.update(steps)
+    return trainer
 
 
 @pytest.fixture(scope="module")

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import run_training, short_config
+from conftest import run_training_seeing, short_config
 
 ROUND, SECOND_ROUND = 50, 62
 CAPTURE = {0, 1, ROUND - 1, ROUND, ROUND + 1, 59, 60, SECOND_ROUND}
@@ -27,33 +27,25 @@ def reset_config(scene: Path, out: Path, steps: int, reset: bool = True):
     return cfg
 
 
+def see(trainer, step) -> dict:
+    """What the iteration at `step` sees (after the round and the model's step callback)."""
+    model, opts = trainer.pipeline.model, trainer.optimizers
+    seen = {
+        "num_points": model.num_points,
+        "model_step": model.step,
+        "lr": {k: o.param_groups[0]["lr"] for k, o in opts.optimizers.items()},
+        "adam_states": sum(len(o.state) for o in opts.optimizers.values()),
+        "last_epoch": opts.schedulers["means"].last_epoch,
+        "grad2d": model.strategy_state["grad2d"],
+        "pose": model.camera_optimizer.pose_adjustment.detach().clone(),
+    }
+    if step in CAPTURE:
+        seen["gauss"] = {k: v.detach().clone() for k, v in model.gauss_params.items()}
+    return seen
+
+
 def train_with_spy(cfg) -> dict:
-    """Train, recording what the iteration at each step sees (after the round and the model's step callback)."""
-    from nerfstudio.engine.trainer import Trainer
-
-    seen = {}
-    original = Trainer.train_iteration
-
-    def spy(self, step):
-        model, opts = self.pipeline.model, self.optimizers
-        seen[step] = {
-            "num_points": model.num_points,
-            "model_step": model.step,
-            "lr": {k: o.param_groups[0]["lr"] for k, o in opts.optimizers.items()},
-            "adam_states": sum(len(o.state) for o in opts.optimizers.values()),
-            "last_epoch": opts.schedulers["means"].last_epoch,
-            "grad2d": model.strategy_state["grad2d"],
-            "pose": model.camera_optimizer.pose_adjustment.detach().clone(),
-        }
-        if step in CAPTURE:
-            seen[step]["gauss"] = {k: v.detach().clone() for k, v in model.gauss_params.items()}
-        return original(self, step)
-
-    Trainer.train_iteration = spy
-    try:
-        trainer = run_training(cfg)
-    finally:
-        Trainer.train_iteration = original
+    trainer, seen = run_training_seeing(cfg, see)
     return {"trainer": trainer, "seen": seen, "run_dir": Path(trainer.base_dir)}
 
 

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import run_training, short_config
+from conftest import run_training_seeing, short_config
 
 from hpgs_ns.schedules import DecayMultiplier
 from hpgs_ns.selection.after_add import AfterAddConfig, AfterAddError, restarts_at
@@ -21,32 +21,22 @@ RESTART, SECOND, TOTAL = 30, 50, 80
 LEFT = TOTAL - RESTART
 
 
+def see(trainer, step) -> dict:
+    m = trainer.pipeline.model
+    return {"num_points": m.num_points, "lr": trainer.optimizers.optimizers["means"].param_groups[0]["lr"],
+            "model_step": m.step, "refine_every": m.strategy.refine_every, "refine_stop": m.strategy.refine_stop_iter,
+            "sh": m.active_sh_degree, "means": float(m.gauss_params["means"].detach().double().sum())}
+
+
 @pytest.fixture(scope="module")
 def run(tiny_scene, tmp_path_factory):
-    from nerfstudio.engine.trainer import Trainer
-
     cfg = short_config(tiny_scene, tmp_path_factory.mktemp("restart"), steps=TOTAL, select_at=(RESTART, SECOND),
                        rounds=2, initial=3, views_per_round=3, selector="random")
     model = cfg.pipeline.model
     model.warmup_length, model.refine_every, model.reset_alpha_every, model.stop_split_at = 10, 10, 100, 60
     model.random_init, model.num_random = True, 1500
-    seen: dict = {}
-    original = Trainer.train_iteration
-
-    def spy(self, step):
-        m = self.pipeline.model
-        seen[step] = {"num_points": m.num_points, "lr": self.optimizers.optimizers["means"].param_groups[0]["lr"],
-                      "model_step": m.step, "refine_every": m.strategy.refine_every,
-                      "refine_stop": m.strategy.refine_stop_iter, "sh": m.active_sh_degree,
-                      "means": float(m.gauss_params["means"].detach().double().sum())}
-        return original(self, step)
-
-    Trainer.train_iteration = spy
     torch.manual_seed(0)
-    try:
-        trainer = run_training(cfg)
-    finally:
-        Trainer.train_iteration = original
+    trainer, seen = run_training_seeing(cfg, see)
     return {"seen": seen, "trainer": trainer, "cfg": cfg}
 
 
