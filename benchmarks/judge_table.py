@@ -36,14 +36,43 @@ VIEWS_WITHOUT_TRAINING = ("farthest", "random")
 BARS = {"cost_mean": 0.3, "cost_hi": 0.6, "fox": 23.5, "seed_sd": 0.4}
 
 
+VIEWS = {}  # (scene, start, variant) -> {seed: the run's final training views}; filled by load()
+EXTRA = {}  # (scene, start, variant) -> {seed: the run's --extra-args}; filled by load()
+
+
 def load(root: Path):
-    """{(scene, start, variant): {seed: test metrics}}"""
+    """{(scene, start, variant): {seed: test metrics}} (and each run's final views in VIEWS)"""
     runs = defaultdict(dict)
     for path in sorted(root.glob("*/*/*/seed*.json")):
         variant, start, scene = path.parent.name, path.parent.parent.name, path.parent.parent.parent.name
         data = json.loads(path.read_text())
         runs[(scene, start, variant)][int(data["seed"])] = data["test"]
+        VIEWS.setdefault((scene, start, variant), {})[int(data["seed"])] = frozenset(
+            data.get("initial_views", []) + data.get("chosen_views", []))
+        EXTRA.setdefault((scene, start, variant), {})[int(data["seed"])] = (
+            data.get("provenance", {}).get("settings", {}).get("extra_args", ""))
     return runs
+
+
+def only_after_add_flags(extra: str, base: str) -> bool:
+    """Whether `extra` adds to `base` nothing but `--pipeline.selection.after-add.*` options (and their values)."""
+    added = [word for word in extra.split() if word not in set(base.split())]
+    return all(not word.startswith("--") or word.startswith("--pipeline.selection.after-add.") for word in added)
+
+
+def borrowed_final_set(scene: str, start: str, selector: str) -> str:
+    """The start folder whose final-set serves an arm without its own: its start mode's (`colmap-r20` -> `colmap`)
+    when the selector's views do not depend on training, every seed's final views are the final-set's, and the
+    arm differs from its start mode's runs only by after-add options (which act from the first add on, so the
+    final-set, trained without adds, is the same run)."""
+    base = start.split("-")[0]
+    if base == start or selector not in VIEWS_WITHOUT_TRAINING:
+        return start
+    mine, theirs = VIEWS.get((scene, start, selector), {}), VIEWS.get((scene, base, "final-set"), {})
+    same = all(views == theirs[seed] for seed, views in mine.items() if seed in theirs)
+    base_extra = next(iter(EXTRA.get((scene, base, selector), {}).values()), "")
+    after_add_only = all(only_after_add_flags(e, base_extra) for e in EXTRA.get((scene, start, selector), {}).values())
+    return base if mine and theirs and same and after_add_only else start
 
 
 def before(scene: str) -> dict:
@@ -75,9 +104,7 @@ def summarise(runs) -> dict:
             selectors = sorted(v for (sc, st, v) in runs if sc == scene and st == start and v != "final-set")
             selector = selectors[0] if selectors else "farthest"
             run = {s: t["psnr"] for s, t in runs.get((scene, start, selector), {}).items()}
-            final_from = start
-            if (scene, start, "final-set") not in runs and selector in VIEWS_WITHOUT_TRAINING:
-                final_from = start.split("-")[0]  # colmap-r20 trains colmap's views: its final-set is colmap's
+            final_from = start if (scene, start, "final-set") in runs else borrowed_final_set(scene, start, selector)
             final = {s: t["psnr"] for s, t in runs.get((scene, final_from, "final-set"), {}).items()}
             if not run:
                 continue

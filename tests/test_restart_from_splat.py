@@ -60,21 +60,30 @@ def test_the_restart_starts_from_the_splats_opaque_gaussians(run):
     log = json.loads((Path(run["trainer"].base_dir) / "selected_views.json").read_text())
     (first,) = log["rounds"]
     assert first["reset"] and first["after_add"]["splat_points_restart"] == kept
+    assert first["num_gaussians_before_reset"] == count_before and first["num_gaussians_after_reset"] == kept
 
 
-def test_opaque_points_keeps_what_culling_keeps_in_its_colour(run):
+@pytest.mark.parametrize("sh_degree", [3, 0])
+def test_opaque_points_keeps_what_culling_keeps_in_its_colour(run, sh_degree):
     model = run["trainer"].pipeline.model
     saved = {k: v.detach().clone() for k, v in model.gauss_params.items()}
+    saved_degree = model.config.sh_degree
     try:
+        n = model.num_points
+        opacity = torch.where(torch.arange(n) % 3 == 0, 0.05, 0.6)  # every third below the 0.1 culling threshold
+        wanted = torch.randint(0, 256, (n, 3), generator=torch.Generator().manual_seed(1), dtype=torch.uint8)
+        colour = wanted.float() / 255
+        model.config.sh_degree = sh_degree
         with torch.no_grad():
-            n = model.num_points
-            model.gauss_params["opacities"].copy_(torch.logit(torch.linspace(0.01, 0.99, n)).unsqueeze(-1))
-            wanted = torch.randint(0, 256, (n, 3), generator=torch.Generator().manual_seed(1), dtype=torch.uint8)
-            model.gauss_params["features_dc"].copy_(splatfacto.RGB2SH(wanted.float() / 255))
+            model.gauss_params["opacities"].copy_(torch.logit(opacity).unsqueeze(-1))
+            dc = splatfacto.RGB2SH(colour) if sh_degree > 0 else torch.logit(colour, eps=1e-10)
+            model.gauss_params["features_dc"].copy_(dc)
         xyz, rgb = model.opaque_points()
-        keep = torch.linspace(0.01, 0.99, n) >= 0.1
+        keep = torch.arange(n) % 3 != 0
+        assert xyz.shape[0] == int(keep.sum()) == n - (n + 2) // 3
         assert torch.equal(xyz, model.means.detach()[keep].cpu()) and torch.equal(rgb, wanted[keep])
     finally:
+        model.config.sh_degree = saved_degree
         with torch.no_grad():
             for k, v in saved.items():
                 model.gauss_params[k].copy_(v)

@@ -67,8 +67,10 @@ class AfterAddConfig:
     `seed-points active`, what the active views triangulate then; with `random-points views`, points drawn again
     along the active views' rays). `splat`: the splat's own Gaussians as points (centres and base colours of those
     at least cull-alpha-thresh opaque) with fresh sizes, rotations and opacities: where the views so far put
-    surfaces, without the shapes and opacities the first views fixed. Meant for captures without seed points, whose
-    restarts otherwise begin from random points again."""
+    surfaces, without the shapes and opacities the first views fixed (with `seed-points active`, the round's
+    triangulated points away from them join, as after any round). None opaque: that restart starts as `start` does.
+    Meant for captures without seed points, whose restarts otherwise begin from random points again. Not with
+    reset-after-add (which always returns to the step-0 Gaussians)."""
 
     def __post_init__(self) -> None:
         self.restart_at_views = tuple(int(n) for n in self.restart_at_views)

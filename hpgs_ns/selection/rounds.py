@@ -149,20 +149,24 @@ class SelectionRounds:
             restart_counts = self.config.after_add.restart_counts(initial, random_start, active_mode and not random_start)
             reachable = min(initial + self.config.max_rounds * self.config.views_per_round, len(dm.active) + len(dm.candidates))
             restart_counts = tuple(n for n in restart_counts if initial < n <= reachable)  # HP-GS's 20 + 7: none
+            from_splat = self.config.after_add.restart_from == "splat"
             if restart_counts and not self.config.after_add.restart_at_views:
                 at = " and ".join(map(str, restart_counts))
                 if random_start:
                     CONSOLE.print(f"random start: the splat restarts at {at} views "
                                   "(--pipeline.selection.after-add.restart-random-starts False: never)", soft_wrap=True)
                 else:
-                    CONSOLE.print(f"active seed points: the splat restarts at {at} views from what the active views "
-                                  "triangulate then (--pipeline.selection.after-add.restart-active-starts False: never)",
-                                  soft_wrap=True)
-            if self.config.after_add.restart_from == "splat":
-                CONSOLE.print(f"restart-from splat: restarts at {' and '.join(map(str, restart_counts))} views start from the "
-                              "splat's own opaque Gaussians" if restart_counts else
-                              "[yellow]restart-from splat does nothing in this run: no restart is due "
-                              "(--pipeline.selection.after-add.restart-at-views sets when)", soft_wrap=True)
+                    what = ("its own opaque Gaussians" if from_splat else "what the active views triangulate then")
+                    CONSOLE.print(f"active seed points: the splat restarts at {at} views from {what} "
+                                  "(--pipeline.selection.after-add.restart-active-starts False: never)", soft_wrap=True)
+            if from_splat and restart_counts:
+                also = "; the round's triangulated points away from them join, as after any round" if active_mode else ""
+                CONSOLE.print(f"restart-from splat: restarts at {' and '.join(map(str, restart_counts))} views start from "
+                              f"the splat's own opaque Gaussians{also}", soft_wrap=True)
+        if self.config.after_add.restart_from == "splat" and not restart_counts:
+            why = ("reset-after-add returns to the step-0 Gaussians at every round" if self.config.reset_after_add
+                   else "no restart is due (--pipeline.selection.after-add.restart-at-views sets when)")
+            CONSOLE.print(f"[yellow]restart-from splat does nothing in this run: {why}", soft_wrap=True)
         if self.config.reset_after_add or restart_counts:
             self.model.keep_initial_for_resets()
 
@@ -176,12 +180,15 @@ class SelectionRounds:
                 if self.config.reset_after_add:
                     self.reset_model(step, attrs.optimizers)
                 elif restarts_at(restart_counts, before, len(self.datamanager.active)):
-                    from_splat = self.config.after_add.restart_from == "splat" and attrs.optimizers is not None
+                    from_splat = (self.config.after_add.restart_from == "splat" and attrs.optimizers is not None
+                                  and hasattr(self.model, "opaque_points"))
                     splat_points = self.model.opaque_points() if from_splat else None  # before the reset drops them
                     self.reset_model(step, attrs.optimizers, end=end)
                     if splat_points is None or not self.reseed_from_splat(*splat_points, attrs.optimizers):
                         self.reseed_from_start(step, attrs.optimizers, active_seeds)
                         active_seeds = False  # an active restart triangulated every active view already
+                    # else (active mode): the round's triangulated points away from the splat's join, as after any round
+                    self.datamanager.history[-1].num_gaussians_after_reset = int(self.model.num_points)
                     self.write_log()
                 elif self.config.after_add.enabled and attrs.optimizers is not None:
                     self.datamanager.history[-1].after_add = apply_after_add(self.config.after_add, self.model, attrs.optimizers,
@@ -301,12 +308,12 @@ class SelectionRounds:
 
     def reseed_from_splat(self, xyz: torch.Tensor, rgb: torch.Tensor, optimizers) -> int:
         """`after-add restart-from splat`: the splat starts over from its own opaque Gaussians' centres and colours
-        (taken before the reset). None opaque: it keeps the step-0 Gaussians the reset put back, and says so.
+        (taken before the reset). None opaque: returns 0 and the restart falls back to `restart-from start`.
         Recorded in the round's `after_add` (`splat_points_restart`)."""
         record = self.datamanager.history[-1]
         if xyz.shape[0] == 0:
-            CONSOLE.print("[yellow]restart-from splat: no Gaussian is opaque enough to keep; the splat starts from its "
-                          "step-0 Gaussians", soft_wrap=True)
+            CONSOLE.print("[yellow]restart-from splat: no Gaussian is opaque enough to keep; this restart starts as "
+                          "restart-from start does", soft_wrap=True)
             return 0
         count = self.model.replace_gaussians(xyz, rgb, optimizers)
         record.after_add = {**record.after_add, "splat_points_restart": float(count)}
