@@ -125,3 +125,30 @@ def test_restart_counts_must_be_positive():
     assert AfterAddConfig(restart_active_starts=False).restart_counts(4, False, active_start=True) == ()
     assert AfterAddConfig(restart_active_starts=False).restart_counts(4, True, active_start=False) == (8, 16)
     assert auto.restart_counts(20, False, active_start=True) == (40, 80)
+
+
+def test_restart_at_last_add_counts_the_runs_final_views():
+    last = AfterAddConfig(restart_at_last_add=True)
+    assert last.describe() == "restart-at-last-add True" and not last.enabled
+    assert last.restart_counts(4, random_start=False, final_views=20) == (20,)  # FisherRF's protocol, seeded start
+    assert last.restart_counts(4, random_start=True, final_views=20) == (8, 16, 20)  # with a random start's own
+    assert last.restart_counts(20, random_start=True, final_views=27) == (27,)  # HP-GS's 20 + 7: 40 and 80 never come
+    assert last.restart_counts(4, random_start=False, final_views=4) == ()  # no round adds views
+    assert AfterAddConfig(restart_at_views=(8, 20), restart_at_last_add=True).restart_counts(4, False, final_views=20) == (8, 20)
+    assert AfterAddConfig().restart_counts(4, random_start=True, final_views=12) == (8,)
+
+
+def test_a_seeded_run_restarts_only_at_its_last_add(tiny_scene, tmp_path, capsys):
+    cfg = short_config(tiny_scene, tmp_path / "last", steps=40, select_at=(20, 30), rounds=2, initial=3,
+                       views_per_round=3, selector="random")
+    cfg.pipeline.selection.after_add = AfterAddConfig(restart_at_last_add=True)
+    torch.manual_seed(0)
+    trainer, seen = run_training_seeing(cfg, see)
+    model = trainer.pipeline.model
+    assert not model.random_start  # the synthetic scene's points: no automatic restarts
+    assert "restart-at-last-add: the splat restarts at 9 views, the run's last add" in " ".join(capsys.readouterr().out.split())
+    log = json.loads((Path(trainer.base_dir) / "selected_views.json").read_text())
+    assert [bool(r.get("reset")) for r in log["rounds"]] == [False, True]  # 3 -> 6: no; 6 -> 9, the last add: yes
+    assert seen[29]["model_step"] == 29 and seen[30]["model_step"] == 0 and seen[39]["model_step"] == 9
+    assert seen[30]["num_points"] == model.initial_gaussians["means"].shape[0] == 1500  # back to the seed points
+    assert model.clock_scale == pytest.approx(10 / 40)  # every schedule squeezed into the 10 steps left

@@ -130,6 +130,7 @@ class SelectionRounds:
         if trainer is not None and getattr(trainer, "base_dir", None) is not None:
             self.run_dir = Path(trainer.base_dir)
         first, end = run_steps(trainer) if trainer is not None else (0, 0)
+        count = None  # rounds this run will still run (None: no trainer to say how many steps it has)
         if trainer is not None:
             count, why = self.plan(first, end)
             gain = self.predicted_gain()
@@ -146,12 +147,21 @@ class SelectionRounds:
         if not self.config.reset_after_add:
             initial = len(dm.initial_views)
             random_start = bool(getattr(self.model, "random_start", False))
-            restart_counts = self.config.after_add.restart_counts(initial, random_start, active_mode and not random_start)
-            reachable = min(initial + self.config.max_rounds * self.config.views_per_round, len(dm.active) + len(dm.candidates))
-            restart_counts = tuple(n for n in restart_counts if initial < n <= reachable)  # HP-GS's 20 + 7: none
-            from_splat = self.config.after_add.restart_from == "splat"
-            if restart_counts and not self.config.after_add.restart_at_views:
-                at = " and ".join(map(str, restart_counts))
+            if count is None:
+                reachable = min(initial + self.config.max_rounds * self.config.views_per_round, len(dm.active) + len(dm.candidates))
+            else:  # the views the run will end with: what is active now and what the rounds still to run add
+                reachable = len(dm.active) + min(count * self.config.views_per_round, len(dm.candidates))
+            after_add = self.config.after_add
+            restart_counts = after_add.restart_counts(initial, random_start, active_mode and not random_start, reachable)
+            automatic = tuple(n for n in restart_counts if not (after_add.restart_at_last_add and n == reachable))
+            from_splat = after_add.restart_from == "splat"
+            if after_add.restart_at_last_add:
+                CONSOLE.print(f"restart-at-last-add: the splat restarts at {reachable} views, the run's last add"
+                              if reachable in restart_counts else
+                              "[yellow]restart-at-last-add does nothing in this run: no round adds views",
+                              soft_wrap=True)
+            if automatic and not after_add.restart_at_views:  # HP-GS's 20 + 7: none
+                at = " and ".join(map(str, automatic))
                 if random_start:
                     CONSOLE.print(f"random start: the splat restarts at {at} views "
                                   "(--pipeline.selection.after-add.restart-random-starts False: never)", soft_wrap=True)
@@ -163,6 +173,9 @@ class SelectionRounds:
                 also = "; the round's triangulated points away from them join, as after any round" if active_mode else ""
                 CONSOLE.print(f"restart-from splat: restarts at {' and '.join(map(str, restart_counts))} views start from "
                               f"the splat's own opaque Gaussians{also}", soft_wrap=True)
+        if self.config.reset_after_add and self.config.after_add.restart_at_last_add:
+            CONSOLE.print("[yellow]restart-at-last-add does nothing in this run: reset-after-add returns to the step-0 "
+                          "Gaussians at every round", soft_wrap=True)
         if self.config.after_add.restart_from == "splat" and not restart_counts:
             why = ("reset-after-add returns to the step-0 Gaussians at every round" if self.config.reset_after_add
                    else "no restart is due (--pipeline.selection.after-add.restart-at-views sets when)")
