@@ -67,7 +67,8 @@ class AfterAddConfig:
     views + max-rounds x views-per-round, or every view if fewer remain): the final views then train together, as
     from step 0, in the steps left (FisherRF's protocol: at 20 views, step 18400, 1600 steps; HP-GS's: at 27, step
     14000, 1000 steps). With COLMAP points on the tuning scenes, a restart at 20 views gained +0.64 dB
-    [-0.03, +1.26] (indistinguishable; docs/active-training.md). Not with reset-after-add."""
+    [-0.03, +1.26] (indistinguishable; docs/active-training.md). Not with reset-after-add; a run whose selection
+    stops early (stop-when-gain-below) never reaches that count and does not restart."""
     restart_from: Literal["start", "splat"] = "start"
     """What a restart starts from. `start`: the run's step-0 points (its seed points or random points; with
     `seed-points active`, what the active views triangulate then; with `random-points views`, points drawn again
