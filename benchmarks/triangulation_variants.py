@@ -28,8 +28,7 @@ from hpgs_ns.scenes.triangulate import (
     DEFAULT_MAX_IMAGE_SIZE,
     TriangulationSettings,
     TriangulationWorkspace,
-    essential_matrix,
-    normalised_rays,
+    epipolar_lines,
     relative_pose,
     triangulate_views,
     view_file,
@@ -129,12 +128,8 @@ def epipolar_distance_matrix(camera1, camera2, cam2_from_cam1: np.ndarray, point
                              points2: np.ndarray) -> np.ndarray:
     """[M1, M2]: `hpgs_ns.scenes.triangulate.epipolar_distance` for every point of points1 [M1, 2] (camera1) with
     every point of points2 [M2, 2] (camera2): pixels, the larger of the two point-to-epipolar-line distances."""
-    x1, x2 = normalised_rays(camera1, points1), normalised_rays(camera2, points2)
-    e = essential_matrix(cam2_from_cam1)
-    line2, line1 = x1 @ e.T, x2 @ e  # epipolar lines in image 2 (of x1) and in image 1 (of x2)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        scale2 = camera2.mean_focal_length() / np.linalg.norm(line2[:, :2], axis=1)
-        scale1 = camera1.mean_focal_length() / np.linalg.norm(line1[:, :2], axis=1)
+    x2, line2, scale2, scale1 = epipolar_lines(camera1, camera2, cam2_from_cam1, points1, points2)
+    with np.errstate(invalid="ignore"):
         residual = np.abs(line2 @ x2.T)  # [M1, M2]: x2_j . (E x1_i)
         distance = np.maximum(residual * scale2[:, None], residual * scale1[None, :])
     return np.where(np.isfinite(distance), distance, np.inf)

@@ -456,17 +456,26 @@ def normalised_rays(camera, points: np.ndarray) -> np.ndarray:
     return np.concatenate([out, np.ones((len(out), 1))], axis=1)
 
 
-def epipolar_distance(camera1, camera2, cam2_from_cam1: np.ndarray, points1: np.ndarray, points2: np.ndarray) -> np.ndarray:
-    """[M] for matched pixels points1 [M, 2] (camera1) and points2 [M, 2] (camera2), pycolmap `Camera`s: the larger
-    of the two distances, in pixels, between a point and the epipolar line of its match under the known relative
-    pose (lens distortion removed first; a normalised distance times the camera's mean focal length). Points
-    that cannot be undistorted are infinitely far."""
+def epipolar_lines(camera1, camera2, cam2_from_cam1: np.ndarray, points1: np.ndarray, points2: np.ndarray):
+    """The pieces of the epipolar distance: the normalised rays x2 [M2, 3] of points2, the epipolar lines in image 2
+    of points1 [M1, 3], and the factors [M1] and [M2] that turn a residual x2 . line2 into pixels in image 2 and in
+    image 1 (mean focal length over the line's normal length; inf where a line has no direction)."""
     x1, x2 = normalised_rays(camera1, points1), normalised_rays(camera2, points2)
     e = essential_matrix(cam2_from_cam1)
     line2, line1 = x1 @ e.T, x2 @ e  # epipolar lines in image 2 (of x1) and in image 1 (of x2)
     with np.errstate(divide="ignore", invalid="ignore"):
         scale2 = camera2.mean_focal_length() / np.linalg.norm(line2[:, :2], axis=1)
         scale1 = camera1.mean_focal_length() / np.linalg.norm(line1[:, :2], axis=1)
+    return x2, line2, scale2, scale1
+
+
+def epipolar_distance(camera1, camera2, cam2_from_cam1: np.ndarray, points1: np.ndarray, points2: np.ndarray) -> np.ndarray:
+    """[M] for matched pixels points1 [M, 2] (camera1) and points2 [M, 2] (camera2), pycolmap `Camera`s: the larger
+    of the two distances, in pixels, between a point and the epipolar line of its match under the known relative
+    pose (lens distortion removed first; a normalised distance times the camera's mean focal length). Points
+    that cannot be undistorted are infinitely far."""
+    x2, line2, scale2, scale1 = epipolar_lines(camera1, camera2, cam2_from_cam1, points1, points2)
+    with np.errstate(invalid="ignore"):
         residual = np.abs((x2 * line2).sum(1))
         distance = np.maximum(residual * scale2, residual * scale1)
     return np.where(np.isfinite(distance), distance, np.inf)
