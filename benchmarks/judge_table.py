@@ -36,22 +36,18 @@ VIEWS_WITHOUT_TRAINING = ("farthest", "random")
 BARS = {"cost_mean": 0.3, "cost_hi": 0.6, "fox": 23.5, "seed_sd": 0.4}
 
 
-VIEWS = {}  # (scene, start, variant) -> {seed: the run's final training views}; filled by load()
-EXTRA = {}  # (scene, start, variant) -> {seed: the run's --extra-args}; filled by load()
-
-
 def load(root: Path):
-    """{(scene, start, variant): {seed: test metrics}} (and each run's final views in VIEWS)"""
-    runs = defaultdict(dict)
+    """({(scene, start, variant): {seed: test metrics}}, {(scene, start, variant): {seed: (the run's final training
+    views, its --extra-args)}})"""
+    runs, setup = defaultdict(dict), defaultdict(dict)
     for path in sorted(root.glob("*/*/*/seed*.json")):
         variant, start, scene = path.parent.name, path.parent.parent.name, path.parent.parent.parent.name
         data = json.loads(path.read_text())
         runs[(scene, start, variant)][int(data["seed"])] = data["test"]
-        VIEWS.setdefault((scene, start, variant), {})[int(data["seed"])] = frozenset(
-            data.get("initial_views", []) + data.get("chosen_views", []))
-        EXTRA.setdefault((scene, start, variant), {})[int(data["seed"])] = (
+        setup[(scene, start, variant)][int(data["seed"])] = (
+            frozenset(data.get("initial_views", []) + data.get("chosen_views", [])),
             data.get("provenance", {}).get("settings", {}).get("extra_args", ""))
-    return runs
+    return runs, setup
 
 
 def only_after_add_flags(extra: str, base: str) -> bool:
@@ -60,7 +56,7 @@ def only_after_add_flags(extra: str, base: str) -> bool:
     return all(not word.startswith("--") or word.startswith("--pipeline.selection.after-add.") for word in added)
 
 
-def borrowed_final_set(scene: str, start: str, selector: str) -> str:
+def borrowed_final_set(setup, scene: str, start: str, selector: str) -> str:
     """The start folder whose final-set serves an arm without its own: its start mode's (`colmap-r20` -> `colmap`)
     when the selector's views do not depend on training, every seed's final views are the final-set's, and the
     arm differs from its start mode's runs only by after-add options (which act from the first add on, so the
@@ -68,10 +64,10 @@ def borrowed_final_set(scene: str, start: str, selector: str) -> str:
     base = start.split("-")[0]
     if base == start or selector not in VIEWS_WITHOUT_TRAINING:
         return start
-    mine, theirs = VIEWS.get((scene, start, selector), {}), VIEWS.get((scene, base, "final-set"), {})
-    same = all(views == theirs[seed] for seed, views in mine.items() if seed in theirs)
-    base_extra = next(iter(EXTRA.get((scene, base, selector), {}).values()), "")
-    after_add_only = all(only_after_add_flags(e, base_extra) for e in EXTRA.get((scene, start, selector), {}).values())
+    mine, theirs = setup.get((scene, start, selector), {}), setup.get((scene, base, "final-set"), {})
+    same = all(views == theirs[seed][0] for seed, (views, _) in mine.items() if seed in theirs)
+    base_extra = next(iter(setup.get((scene, base, selector), {}).values()), (None, ""))[1]
+    after_add_only = all(only_after_add_flags(extra, base_extra) for _, extra in mine.values())
     return base if mine and theirs and same and after_add_only else start
 
 
@@ -94,7 +90,7 @@ def pooled_sd(groups) -> tuple:
     return (math.sqrt(ss / dof) if dof else float("nan")), dof
 
 
-def summarise(runs) -> dict:
+def summarise(runs, setup) -> dict:
     scenes = sorted({k[0] for k in runs})
     starts = sorted({k[1] for k in runs})
     table, summary = [], {"bars": BARS, "starts": {}}
@@ -104,7 +100,7 @@ def summarise(runs) -> dict:
             selectors = sorted(v for (sc, st, v) in runs if sc == scene and st == start and v != "final-set")
             selector = selectors[0] if selectors else "farthest"
             run = {s: t["psnr"] for s, t in runs.get((scene, start, selector), {}).items()}
-            final_from = start if (scene, start, "final-set") in runs else borrowed_final_set(scene, start, selector)
+            final_from = start if (scene, start, "final-set") in runs else borrowed_final_set(setup, scene, start, selector)
             final = {s: t["psnr"] for s, t in runs.get((scene, final_from, "final-set"), {}).items()}
             if not run:
                 continue
@@ -170,8 +166,8 @@ def main() -> None:
     parser.add_argument("--compare", nargs="*", default=None, metavar="ARM:BASE",
                         help="start folders to pair (default: every start against colmap)")
     args = parser.parse_args()
-    runs = load(args.root)
-    summary = summarise(runs)
+    runs, setup = load(args.root)
+    summary = summarise(runs, setup)
     if args.compare is None:
         pairs = [(start, "colmap") for start in sorted({k[1] for k in runs}) if start != "colmap"]
     else:
