@@ -19,13 +19,13 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
-from hpgs_ns.atomic_write import write_json_atomic  # noqa: E402
+from hpgs_ns.atomic_write import atomic_path, write_json_atomic  # noqa: E402
 
 ROOTS = [Path("benchmarks/results/tune-full"), Path("benchmarks/results/judge-full")]
 
 
 def curves(roots):
-    """[(label, start, [(step, psnr)], final psnr)] for every seed-0 final-set under `roots`."""
+    """[(scene, start, [(step, psnr)] ending with the final PSNR)] for every seed-0 final-set under `roots`."""
     out = []
     for root in roots:
         for path in sorted(root.glob("*/*/final-set/seed0.json")):
@@ -65,10 +65,8 @@ def main() -> None:
         ax.legend(fontsize=7)
     axes[0][0].set_ylabel("test PSNR (dB)")
     fig.tight_layout()
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = args.out.with_name(args.out.stem + ".tmp" + args.out.suffix)
-    fig.savefig(tmp, dpi=110)
-    tmp.replace(args.out)
+    with atomic_path(args.out, suffix=args.out.suffix) as tmp:
+        fig.savefig(tmp, dpi=110)
     write_json_atomic(args.out.with_suffix(".json"), rows)
     print(f"wrote {args.out}")
 

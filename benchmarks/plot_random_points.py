@@ -21,6 +21,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 sys.path.insert(0, str(Path(__file__).parent))
 from random_start_coverage import outputs  # noqa: E402
 
+from hpgs_ns.atomic_write import atomic_path  # noqa: E402
 from hpgs_ns.scenes.view_points import points_along_views  # noqa: E402
 from hpgs_ns.selectors.farthest import farthest_point_order  # noqa: E402
 
@@ -58,7 +59,8 @@ def main(data_root: Path = Path("../shared/data"), out: Path = Path("docs/random
         ax.set_title(f"{name} (top view, x-y)")
     axes[0].legend(loc="lower left", fontsize=7, markerscale=5)
     fig.tight_layout()
-    fig.savefig(out, dpi=60)
+    with atomic_path(out, suffix=Path(out).suffix) as tmp:  # no half-written figure
+        fig.savefig(tmp, dpi=60)
     print(f"wrote {out}")
 
 

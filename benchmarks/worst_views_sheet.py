@@ -18,6 +18,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 from PIL import Image  # noqa: E402
 
+from hpgs_ns.atomic_write import atomic_path  # noqa: E402
+
 
 def entries(root: Path, rank: int):
     """(title, image path) for every result under `root` that kept a worst view of this rank, sorted by its PSNR."""
@@ -56,7 +58,8 @@ def main() -> None:
         ax.set_title(title, fontsize=7)
     fig.tight_layout()
     out = args.out or args.root / "worst_views.png"
-    fig.savefig(out, dpi=90)
+    with atomic_path(out, suffix=Path(out).suffix) as tmp:  # no half-written figure
+        fig.savefig(tmp, dpi=90)
     print(f"{len(items)} runs -> {out}")
 
 
