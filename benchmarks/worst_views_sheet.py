@@ -3,6 +3,7 @@
 seen, not only counted.
 
     python benchmarks/worst_views_sheet.py benchmarks/results/tune-full [--rank 0] [--out worst_views.png]
+        [--scenes a,b] [--arms active,active-r20] [--seeds 0]
 """
 
 from __future__ import annotations
@@ -21,16 +22,22 @@ from PIL import Image  # noqa: E402
 from hpgs_ns.atomic_write import atomic_path  # noqa: E402
 
 
-def entries(root: Path, rank: int):
-    """(title, image path) for every result under `root` that kept a worst view of this rank, sorted by its PSNR."""
+def entries(root: Path, rank: int, scenes=None, arms=None, seeds=None):
+    """(title, image path) for every result under `root` (<scene>/<arm>/<selector>/seed<k>.json; None: any) that kept
+    a worst view of this rank, sorted by its PSNR."""
     found = []
     for result in sorted(root.rglob("seed*.json")):
+        parts = result.relative_to(root).parts
+        if (scenes and parts[0] not in scenes) or (arms and (len(parts) < 4 or parts[1] not in arms)):
+            continue
         try:
             data = json.loads(result.read_text())
         except ValueError:
             continue
         worst = data.get("worst_views") or []
         if len(worst) <= rank or not (result.parent / worst[rank]["image"]).is_file():
+            continue
+        if seeds is not None and data.get("seed") not in seeds:
             continue
         view = worst[rank]
         label = "/".join(result.relative_to(root).parts[:-1])
@@ -45,8 +52,13 @@ def main() -> None:
     parser.add_argument("--rank", type=int, default=0, help="0: each run's worst view, 1: its second worst")
     parser.add_argument("--columns", type=int, default=3)
     parser.add_argument("--out", type=Path, default=None, help="default: ROOT/worst_views.png")
+    parser.add_argument("--scenes", default="", help="comma-separated scene folders (default: all)")
+    parser.add_argument("--arms", default="", help="comma-separated arm folders, the level under the scene (default: all)")
+    parser.add_argument("--seeds", default="", help="comma-separated seeds (default: all)")
     args = parser.parse_args()
-    items = entries(args.root, args.rank)
+    split = lambda text: [t for t in text.split(",") if t] or None  # noqa: E731
+    seeds = split(args.seeds)
+    items = entries(args.root, args.rank, split(args.scenes), split(args.arms), seeds and [int(s) for s in seeds])
     if not items:
         raise SystemExit(f"no worst-view JPEGs under {args.root} (runs written by hpgs bench >= 0.4 keep them)")
     rows = math.ceil(len(items) / args.columns)

@@ -58,17 +58,17 @@ class AfterAddConfig:
     restart_active_starts: bool = True
     """When restart-at-views is empty, a splat seeded by `seed-points active` restarts too, at twice and four times
     the initial view count, from the points all active views triangulate then: what a few initial views triangulate
-    is thin (fox: 160 points from 4 views, some 2000 from 16), and what the splat grew from it is locked in as a
-    random start's is (fox, FisherRF protocol: 25.1 / 23.1 dB from 4 views' points against 28.4 from the final 20
-    views' at step 0). False: an active start that found enough points never restarts."""
+    is thin (a few initial views triangulate hundreds of points, the final views thousands), and what the splat grew
+    from it is locked in as a random start's is (docs/active-training.md). False: an active start that found enough
+    points never restarts."""
 
     restart_at_last_add: bool = False
     """Also start the splat over at the round that brings the training views to the run's final count (initial
     views + max-rounds x views-per-round, or every view if fewer remain): the final views then train together, as
     from step 0, in the steps left (FisherRF's protocol: at 20 views, step 18400, 1600 steps; HP-GS's: at 27, step
-    14000, 1000 steps). With COLMAP points on the tuning scenes, a restart at 20 views gained +0.64 dB
-    [-0.03, +1.26] (indistinguishable; docs/active-training.md). Not with reset-after-add; a run whose selection
-    stops early (stop-when-gain-below) never reaches that count and does not restart."""
+    14000, 1000 steps). Off: on the tuning scenes it did not gain in the `active` start (docs/active-training.md).
+    Not with reset-after-add; a run whose selection stops early (stop-when-gain-below) never reaches that count and
+    does not restart."""
     restart_from: Literal["start", "splat"] = "start"
     """What a restart starts from. `start`: the run's step-0 points (its seed points or random points; with
     `seed-points active`, what the active views triangulate then; with `random-points views`, points drawn again
@@ -76,7 +76,8 @@ class AfterAddConfig:
     at least cull-alpha-thresh opaque) with fresh sizes, rotations and opacities: where the views so far put
     surfaces, without the shapes and opacities the first views fixed (with `seed-points active`, the round's
     triangulated points away from them join, as after any round). None opaque: that restart starts as `start` does.
-    Meant for captures without seed points, whose restarts otherwise begin from random points again. Not with
+    Meant for captures without seed points, whose restarts otherwise begin from random points again; off because
+    on the tuning scenes it scattered the splat into fragments (docs/active-training.md). Not with
     reset-after-add (which always returns to the step-0 Gaussians)."""
 
     def __post_init__(self) -> None:
