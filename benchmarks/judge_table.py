@@ -6,7 +6,8 @@ main at 2bbac07 (`benchmarks/results/suite/<scene>/fisherrf/farthest/`) for the 
 run PSNR per seed, final-set, schedule cost (final-set - run, same seed), then the bars: mean schedule cost with its
 95% paired interval (hierarchical bootstrap over scenes, `hpgs_ns.bench.stats`), fox's PSNR, the seed SD of
 `farthest` pooled over scenes; and each trainer arm (a start folder such as `colmap-r16`) against another (by default
-`colmap`), paired by scene and seed, with its interval and sign-flip p; writes them as JSON. An arm without final-set
+`colmap`), paired by scene and seed, with its interval and sign-flip p; writes them as JSON. Random runs (bonsai,
+fox) live in `<start>-random/` folders beside their own final-sets, and count in their start mode's Done-when line. An arm without final-set
 runs of its own (`colmap-r20`) uses its start mode's (`colmap`) when its views do not depend on training (farthest,
 random).
 
@@ -125,14 +126,41 @@ def summarise(runs, setup) -> dict:
             entry["fox_pass"] = all(v >= BARS["fox"] for v in fox[0]["run"].values())
         summary["starts"][start] = entry
     summary["table"] = table
+    summary["modes"] = done_when(table)
     return summary
 
 
-def arm_gains(runs, arm: str, base: str, selector: str = "farthest") -> dict:
-    """{scene: {seed: PSNR of `arm`'s `selector` run - `base`'s}} over the (scene, seed) pairs both have."""
+def done_when(table) -> dict:
+    """#33's bars per start mode, pooled over its selectors: `colmap` with `colmap-random` (the random runs on
+    bonsai and fox live in a start folder of their own so that their final-sets do not meet farthest's). Schedule
+    cost: every (selector, seed) pair of a scene counts, the bootstrap resamples scenes; fox: every 20-view run;
+    seed SD: `farthest` only (the bar's wording)."""
+    modes = {}
+    for mode in sorted({r["start"] for r in table if "-" not in r["start"]}):
+        rows = [r for r in table if r["start"] in (mode, f"{mode}-random")]
+        costs = defaultdict(dict)
+        for r in rows:
+            for seed, cost in r["cost"].items():
+                costs[r["scene"]][f"{r['start']}:{seed}"] = cost
+        entry = {"starts": sorted({r["start"] for r in rows}), "scenes": sorted(costs),
+                 "pairs": sum(len(v) for v in costs.values())}
+        if costs:
+            mean, lo, hi = stats.hierarchical_bootstrap(dict(costs), n_boot=10000, seed=0)
+            entry.update(cost_mean=mean, cost_lo=lo, cost_hi=hi,
+                         cost_pass=bool(mean <= BARS["cost_mean"] and hi < BARS["cost_hi"]))
+        fox = {f"{r['start']}:{seed}": v for r in rows if r["scene"] == "fox" for seed, v in r["run"].items()}
+        if fox:
+            entry.update(fox=fox, fox_pass=all(v >= BARS["fox"] for v in fox.values()))
+        modes[mode] = entry
+    return modes
+
+
+def arm_gains(runs, arm: str, base: str) -> dict:
+    """{scene: {seed: PSNR of `arm`'s progressive run - `base`'s with the same selector}} over the (scene, seed)
+    pairs both have."""
     gains = defaultdict(dict)
     for (scene, start, variant), by_seed in runs.items():
-        if start != arm or variant != selector:
+        if start != arm or variant == "final-set":
             continue
         other = runs.get((scene, base, variant), {})
         for seed, test in by_seed.items():
@@ -169,7 +197,9 @@ def main() -> None:
     runs, setup = load(args.root)
     summary = summarise(runs, setup)
     if args.compare is None:
-        pairs = [(start, "colmap") for start in sorted({k[1] for k in runs}) if start != "colmap"]
+        starts = sorted({k[1] for k in runs})
+        pairs = [(start, "colmap") for start in starts if start != "colmap" and not start.endswith("-random")]
+        pairs += [(start, "colmap-random") for start in starts if start.endswith("-random") and start != "colmap-random"]
     else:
         pairs = [tuple(pair.split(":", 1)) for pair in args.compare]
     summary["arms"] = compare_arms(runs, pairs)
@@ -190,6 +220,16 @@ def main() -> None:
         line += f"{'met' if e['seed_sd_pass'] else 'not met'})"
         if "fox" in e:
             line += f"; fox {fmt(e['fox'])} (bar >= {BARS['fox']}: {'met' if e['fox_pass'] else 'not met'})"
+        print(line)
+    for mode, e in summary["modes"].items():
+        if "cost_mean" not in e or len(e["starts"]) < 2:
+            continue  # the same figures as the start's own line above
+        line = (f"Done-when, {mode} start ({' + '.join(e['starts'])}): schedule cost {e['cost_mean']:+.2f} dB "
+                f"[{e['cost_lo']:+.2f}, {e['cost_hi']:+.2f}] ({len(e['scenes'])} scenes, {e['pairs']} pairs): "
+                f"{'met' if e['cost_pass'] else 'not met'}")
+        if "fox" in e:
+            line += f"; fox {', '.join(f'{k} {v:.2f}' for k, v in sorted(e['fox'].items()))}: "
+            line += "met" if e["fox_pass"] else "not met"
         print(line)
     for c in summary["arms"]:
         print(f"{c['arm']} - {c['base']}: {c['gain']:+.2f} dB [{c['lo']:+.2f}, {c['hi']:+.2f}], sign-flip p = {c['p']:.3f} "
