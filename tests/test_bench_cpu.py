@@ -176,6 +176,15 @@ def test_selection_options_and_datamanager_options_go_to_their_groups(tiny_scene
     assert f"--{SELECTION_PREFIX}log-candidate-scores" not in all_args
 
 
+def test_reference_rows_alone_run_without_a_selector_run(tiny_scene, tmp_path):
+    # `--seeds --reference-seeds 0 --reference-rows all`: one `all` run, seed 0, and no selector run
+    bench = Bench(scenes=[tiny_scene], out=tmp_path, selectors=["random"], seeds=[], reference_seeds=[0],
+                  reference_rows=["all"], protocols=["fisherrf"])
+    assert [(j.name, j.seed) for j in bench.jobs()] == [("all", 0)]
+    both = Bench(scenes=[tiny_scene], out=tmp_path, selectors=["random"], seeds=[1], reference_seeds=[0])
+    assert sorted((j.name, j.seed) for j in both.jobs()) == [("all", 0), ("initial", 0), ("random", 1)]
+
+
 def test_strict_init_runs_go_to_their_own_protocol_folder(tiny_scene, tmp_path):
     bench = Bench(scenes=[tiny_scene], out=tmp_path, selectors=["random"], seeds=[0], references=False,
                   reset_after_add=True, strict_init=True)

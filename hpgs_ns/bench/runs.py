@@ -83,6 +83,8 @@ class Bench:
     """View-addition protocols."""
     references: bool = True
     """Also run the `initial` (no additions) and `all` (every training view) rows."""
+    reference_rows: List[Literal["initial", "all"]] = field(default_factory=lambda: list(REFERENCES))
+    """Which reference rows --references runs (e.g. only `all`: each row is one more full training run)."""
     final_set: Literal["none", "first-seed", "all"] = "none"
     """Also run a `final-set` reference for selector runs: the run's final views (initial and chosen) trained from
     step 0 with its seed, steps and settings and no rounds; the report's schedule cost is its PSNR minus the run's.
@@ -191,7 +193,7 @@ class Bench:
                     if self.stop_when_gain_below is not None:
                         protocol = dataclasses.replace(protocol, name=f"{protocol.name}-stop{self.stop_when_gain_below:g}")
                     names = list(self.selectors) if seed in self.seeds else []
-                    names += list(REFERENCES) if self.references and seed in reference_seeds else []
+                    names += list(dict.fromkeys(self.reference_rows)) if self.references and seed in reference_seeds else []
                     for name in names:
                         for repeat in range(self.repeats if name not in REFERENCES else 1):
                             jobs.append(Job(scene, protocol, name, seed, repeat))
