@@ -62,11 +62,12 @@ def borrowed_final_set(setup, scene: str, start: str, selector: str) -> str:
     when the selector's views do not depend on training, every seed's final views are the final-set's, and the
     arm differs from its start mode's runs only by after-add options (which act from the first add on, so the
     final-set, trained without adds, is the same run)."""
-    base = start.split("-")[0]
+    base = start.split("-")[0] + ("-random" if start.endswith("-random") else "")  # colmap-r20-random -> colmap-random
     if base == start or selector not in VIEWS_WITHOUT_TRAINING:
         return start
     mine, theirs = setup.get((scene, start, selector), {}), setup.get((scene, base, "final-set"), {})
-    same = all(views == theirs[seed][0] for seed, (views, _) in mine.items() if seed in theirs)
+    same = any(seed in theirs for seed in mine) and all(
+        views == theirs[seed][0] for seed, (views, _) in mine.items() if seed in theirs)
     base_extra = next(iter(setup.get((scene, base, selector), {}).values()), (None, ""))[1]
     after_add_only = all(only_after_add_flags(extra, base_extra) for _, extra in mine.values())
     return base if mine and theirs and same and after_add_only else start
@@ -100,20 +101,28 @@ def summarise(runs, setup) -> dict:
         for scene in scenes:
             selectors = sorted(v for (sc, st, v) in runs if sc == scene and st == start and v != "final-set")
             selector = selectors[0] if selectors else "farthest"
+            if len(selectors) > 1:  # one final-set folder per start: another selector belongs in <start>-<selector>/
+                print(f"warning: {scene}/{start} holds runs of {', '.join(selectors)}; only {selector}'s are read")
             run = {s: t["psnr"] for s, t in runs.get((scene, start, selector), {}).items()}
             final_from = start if (scene, start, "final-set") in runs else borrowed_final_set(setup, scene, start, selector)
             final = {s: t["psnr"] for s, t in runs.get((scene, final_from, "final-set"), {}).items()}
             if not run:
                 continue
+            for seed, (views, _) in setup.get((scene, final_from, "final-set"), {}).items():
+                made = setup.get((scene, start, selector), {}).get(seed)
+                if made is not None and made[0] != views:  # a final-set must train its run's final views
+                    print(f"warning: {scene}/{final_from}/final-set seed {seed} trained other views than "
+                          f"{scene}/{start}/{selector} seed {seed} ended with")
             cost = {s: final[s] - run[s] for s in run if s in final}
             if cost:
                 costs[scene] = cost
             seed_groups.append(list(run.values()))
-            table.append({"scene": scene, "start": start, "run": run, "final_set": final, "final_set_of": final_from,
+            table.append({"scene": scene, "start": start, "selector": selector, "run": run, "final_set": final, "final_set_of": final_from,
                           "cost": cost,
                           "before_2bbac07": before(scene) if start == "colmap" else {},
                           "final_set_before_2bbac07": FINAL_SET_BEFORE.get(scene, {}) if start == "colmap" else {}})
-        entry = {"scenes": sorted(costs), "pairs": sum(len(v) for v in costs.values())}
+        entry = {"scenes": sorted(costs), "pairs": sum(len(v) for v in costs.values()),
+                 "selectors": sorted({r.get("selector", "") for r in table if r["start"] == start})}
         if costs:
             mean, lo, hi = stats.hierarchical_bootstrap(costs, n_boot=10000, seed=0)
             entry.update(cost_mean=mean, cost_lo=lo, cost_hi=hi,
@@ -192,7 +201,8 @@ def main() -> None:
     parser.add_argument("--root", type=Path, default=ROOT)
     parser.add_argument("--out", type=Path, default=ROOT / "summary.json")
     parser.add_argument("--compare", nargs="*", default=None, metavar="ARM:BASE",
-                        help="start folders to pair (default: every start against colmap)")
+                        help="start folders to pair (default: every start against colmap, random starts against "
+                             "colmap-random)")
     args = parser.parse_args()
     runs, setup = load(args.root)
     summary = summarise(runs, setup)
@@ -211,7 +221,7 @@ def main() -> None:
               f"{' / '.join(f'{v:+.2f}' for v in r['cost'].values()) or '-'} | {old} |")
     print()
     for start, e in summary["starts"].items():
-        line = f"{start}: "
+        line = f"{start} ({', '.join(e['selectors'])} only): "
         if "cost_mean" in e:
             line += (f"schedule cost {e['cost_mean']:+.2f} dB [{e['cost_lo']:+.2f}, {e['cost_hi']:+.2f}] "
                      f"({len(e['scenes'])} scenes, {e['pairs']} pairs; bar <= {BARS['cost_mean']}, upper < "

@@ -5,8 +5,10 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import tempfile
 import threading
 import time
+from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
@@ -173,12 +175,43 @@ def test_the_code_hash_follows_a_selectors_own_files_only(monkeypatch, tmp_path)
     monkeypatch.setattr(provenance, "PACKAGE", copy)
     before = {s: provenance.code_hash(s) for s in ("random", "fisher", "hpgs", None)}
     assert len(set(before.values())) == 4
-    (copy / "selectors" / "fisher.py").write_text((copy / "selectors" / "fisher.py").read_text() + "\n# changed\n")
+    (copy / "selectors" / "fisher.py").write_text((copy / "selectors" / "fisher.py").read_text() + "\nCHANGED = 1\n")
     (copy / "bench" / "report" / "tables.py").write_text("# reporting cannot change a run\n")
     after = {s: provenance.code_hash(s) for s in ("random", "fisher", "hpgs", None)}
     assert [s for s in before if before[s] != after[s]] == ["fisher"]
-    (copy / "model.py").write_text((copy / "model.py").read_text() + "\n# changed\n")
+    # comments, docstrings (the options' field docs too) and blank lines are not code
+    after_add = copy / "selection" / "after_add.py"
+    text = after_add.read_text()
+    assert '    """Densify, split and cull' in text and "# " in text
+    edited = text.replace('    """Densify, split and cull', '    """Grow, split and cull').replace(
+        "import annotations", "import annotations  # a comment\n\n\n")
+    after_add.write_text(edited)
+    assert provenance.code_hash(None) == after[None]
+    after_add.write_text(edited.replace("refine_steps: int = 0", "refine_steps: int = 1"))
+    assert provenance.code_hash(None) != after[None]
+    after_add.write_text(text)
+    (copy / "model.py").write_text((copy / "model.py").read_text() + "\nCHANGED = 1\n")
     assert all(provenance.code_hash(s) != after[s] for s in after)
+
+
+def test_code_text_drops_comments_and_docstrings_only():
+    import textwrap
+
+    source = textwrap.dedent('''\
+        """Module doc — with a non-ASCII dash."""
+        x = "# not a comment"  # a comment
+        class Options:
+            """Class doc."""
+
+            steps: int = 3
+            """Field doc, over
+            two lines."""
+            y = f"{x} — {steps}"  # after a non-ASCII string
+        ''')
+    path = Path(tempfile.mkdtemp()) / "m.py"
+    path.write_text(source)
+    assert provenance.code_text(path) == (
+        'x = "# not a comment"\nclass Options:\n    steps: int = 3\n    y = f"{x} — {steps}"')
 
 
 def test_resuming_with_another_preference_model_or_option_is_refused(tmp_path):

@@ -38,6 +38,9 @@ def test_done_when_pools_farthest_and_random_runs_per_start_mode(tmp_path, judge
         write_run(tmp_path, scene, "colmap-random", "final-set", 0, final, views=("c", "d"))
         write_run(tmp_path, scene, "active-random", "random", 0, run + 0.5, views=("c", "d"))
 
+    # an after-add arm of the random runs, same views: it borrows colmap-random's final-set, never farthest's
+    write_run(tmp_path, "bonsai", "colmap-r20-random", "random", 0, 18.5, views=("c", "d"))
+
     runs, setup = judge_table.load(tmp_path)
     summary = judge_table.summarise(runs, setup)
     colmap = summary["modes"]["colmap"]
@@ -51,6 +54,8 @@ def test_done_when_pools_farthest_and_random_runs_per_start_mode(tmp_path, judge
     assert colmap["fox_pass"] is False
     # the farthest-only figures of the `colmap` start are untouched by the random runs
     assert summary["starts"]["colmap"]["cost_mean"] == pytest.approx((1.0 + 2.0 + 0.3) / 3)
+    [arm] = [r for r in summary["table"] if r["start"] == "colmap-r20-random"]
+    assert arm["final_set_of"] == "colmap-random" and arm["cost"] == {0: pytest.approx(0.5)}
     # random arms pair with random arms, by scene and seed
     gains = judge_table.arm_gains(runs, "active-random", "colmap-random")
     assert gains == {"bonsai": {0: pytest.approx(0.5)}, "fox": {0: pytest.approx(0.5)}}

@@ -96,7 +96,7 @@ def test_a_plugin_selector_reaches_the_bench_rows_the_candidate_log_and_provenan
     assert logged_selectors() == ["farthest", "fisher", "hpgs", "condorcet", "last"]
     before = code_hash("last")
     assert before != code_hash(None)
-    (toy_plugin / "toy_selector.py").write_text(TOY + "\n# a change to the plugin's module\n")
+    (toy_plugin / "toy_selector.py").write_text(TOY + "\nCHANGED = 1  # a change to the plugin's module\n")
     assert code_hash("last") != before  # the plugin's own file moves its runs' code hash
 
 

@@ -12,10 +12,13 @@ module (a test checks). The git commit is recorded beside it, for reading.
 
 from __future__ import annotations
 
+import ast
 import dataclasses
 import hashlib
+import io
 import os
 import subprocess
+import tokenize
 from pathlib import Path
 from typing import Dict, List, Optional
 
@@ -56,7 +59,8 @@ def selector_files(selector: str) -> List[Path]:
 
 
 def code_hash(selector: Optional[str]) -> str:
-    """sha256 of CODE_FILES and the files of `selector` (a registered name; None for reference rows)."""
+    """sha256 of CODE_FILES and the files of `selector` (a registered name; None for reference rows), each as
+    `code_text` gives it: an edit to a comment or a docstring does not make a sweep's finished runs look stale."""
     files = {rel: PACKAGE / rel for rel in CODE_FILES}
     if selector is not None:
         for path in selector_files(selector):
@@ -64,8 +68,32 @@ def code_hash(selector: Optional[str]) -> str:
     digest = hashlib.sha256()
     for rel in sorted(files):
         path = files[rel]
-        digest.update(rel.encode() + b"\0" + (path.read_bytes() if path.is_file() else b"<missing>") + b"\0")
+        digest.update(rel.encode() + b"\0" + (code_text(path).encode() if path.is_file() else b"<missing>") + b"\0")
     return digest.hexdigest()[:16]
+
+
+def code_text(path: Path) -> str:
+    """A Python file's text without comments, docstrings (any string statement: the options' field docs too) and
+    blank lines. Positions come from `tokenize` and `ast`, which read the same on every Python 3 version, so a GPU
+    machine's Python and this one agree. A file that does not parse is taken whole."""
+    text = Path(path).read_text(encoding="utf-8", errors="surrogateescape")
+    try:
+        tree = ast.parse(text)
+        tokens = list(tokenize.generate_tokens(io.StringIO(text).readline))
+    except (SyntaxError, ValueError, tokenize.TokenError):
+        return text
+    lines = text.splitlines()
+
+    def column(row: int, byte_offset: int) -> int:  # ast counts UTF-8 bytes, tokenize characters
+        return len(lines[row - 1].encode("utf-8", "surrogateescape")[:byte_offset].decode("utf-8", "surrogateescape"))
+
+    cuts = [(t.start, t.end) for t in tokens if t.type == tokenize.COMMENT]
+    cuts += [((n.lineno, column(n.lineno, n.col_offset)), (n.end_lineno, column(n.end_lineno, n.end_col_offset)))
+             for n in ast.walk(tree)
+             if isinstance(n, ast.Expr) and isinstance(n.value, ast.Constant) and isinstance(n.value.value, str)]
+    for (row, col), (end_row, end_col) in sorted(cuts, reverse=True):  # from the end: earlier positions hold
+        lines[row - 1:end_row] = [lines[row - 1][:col] + lines[end_row - 1][end_col:]]
+    return "\n".join(line.rstrip() for line in lines if line.strip())
 
 
 def file_hash(path: Path) -> str:
