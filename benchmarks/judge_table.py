@@ -123,10 +123,7 @@ def summarise(runs, setup) -> dict:
                           "final_set_before_2bbac07": FINAL_SET_BEFORE.get(scene, {}) if start == "colmap" else {}})
         entry = {"scenes": sorted(costs), "pairs": sum(len(v) for v in costs.values()),
                  "selectors": sorted({r.get("selector", "") for r in table if r["start"] == start})}
-        if costs:
-            mean, lo, hi = stats.hierarchical_bootstrap(costs, n_boot=10000, seed=0)
-            entry.update(cost_mean=mean, cost_lo=lo, cost_hi=hi,
-                         cost_pass=bool(mean <= BARS["cost_mean"] and hi < BARS["cost_hi"]))
+        entry.update(cost_bar(costs))
         sd, dof = pooled_sd(seed_groups)
         entry.update(seed_sd=sd, seed_sd_dof=dof, seed_sd_pass=bool(dof and sd <= BARS["seed_sd"]))
         fox = [r for r in table if r["scene"] == "fox" and r["start"] == start]
@@ -137,6 +134,15 @@ def summarise(runs, setup) -> dict:
     summary["table"] = table
     summary["modes"] = done_when(table)
     return summary
+
+
+def cost_bar(costs) -> dict:
+    """The schedule-cost figures of {scene: {pair: cost}}: mean of per-scene means, its 95% hierarchical-bootstrap
+    interval, and whether #33's bar holds ({} without costs)."""
+    if not costs:
+        return {}
+    mean, lo, hi = stats.hierarchical_bootstrap(dict(costs), n_boot=10000, seed=0)
+    return dict(cost_mean=mean, cost_lo=lo, cost_hi=hi, cost_pass=bool(mean <= BARS["cost_mean"] and hi < BARS["cost_hi"]))
 
 
 def done_when(table) -> dict:
@@ -153,10 +159,7 @@ def done_when(table) -> dict:
                 costs[r["scene"]][f"{r['start']}:{seed}"] = cost
         entry = {"starts": sorted({r["start"] for r in rows}), "scenes": sorted(costs),
                  "pairs": sum(len(v) for v in costs.values())}
-        if costs:
-            mean, lo, hi = stats.hierarchical_bootstrap(dict(costs), n_boot=10000, seed=0)
-            entry.update(cost_mean=mean, cost_lo=lo, cost_hi=hi,
-                         cost_pass=bool(mean <= BARS["cost_mean"] and hi < BARS["cost_hi"]))
+        entry.update(cost_bar(costs))
         fox = {f"{r['start']}:{seed}": v for r in rows if r["scene"] == "fox" for seed, v in r["run"].items()}
         if fox:
             entry.update(fox=fox, fox_pass=all(v >= BARS["fox"] for v in fox.values()))
