@@ -68,10 +68,12 @@ class ActiveDatamanagerConfig(FullImageDatamanagerConfig):
     file name where that is unambiguous); overrides initial-views."""
     seed: int = 0
     """Seeds the initial views (random/fps), the order views are trained in, and the selectors' randomness."""
-    seed_points: Literal["colmap", "colmap-initial", "active", "random"] = "colmap"
-    """Where the splat's seed points come from. `colmap`: the dataparser's points (a COLMAP model built from every
-    photo, test and withheld ones included), kept as the default for comparability with published tables and with
-    every number reported here so far. `colmap-initial`: only those COLMAP points whose track includes two initial
+    seed_points: Literal["auto", "colmap", "colmap-initial", "active", "random"] = "auto"
+    """Where the splat's seed points come from. `auto`: `colmap` when the capture has a point cloud, else `active`
+    (a capture without one, nerfstudio-data or Blender, would otherwise start from random points, which loses
+    several dB: docs/active-training.md "Start modes"). `colmap`: the dataparser's points (a COLMAP model built
+    from every photo, test and withheld ones included), or splatfacto's random points when it has none: what
+    published tables used, and the default before `auto`. `colmap-initial`: only those COLMAP points whose track includes two initial
     views, so withheld and test views leak no geometry into the starting splat (needs a COLMAP model with point
     tracks). `active`: points triangulated from the initial views' photos alone at their known poses
     (`hpgs_ns.scenes.triangulate`), for any scene (COLMAP, nerfstudio-data, Blender: no tracks needed), and again
@@ -214,6 +216,13 @@ class ActiveDatamanager(FullImageDatamanager):
         self.triangulation: Optional[Any] = None
         """The `TriangulationWorkspace` of `seed-points active` (features and matches of the views seen so far)."""
         self.seed_points_mode = self._seed_points_mode()
+        if self.seed_points_mode == "auto":
+            has_points = "points3D_xyz" in self.train_dataparser_outputs.metadata
+            self.seed_points_mode = "colmap" if has_points else "active"
+            if not has_points and test_mode == "val":
+                CONSOLE.print("seed points: the capture has no point cloud, so they are triangulated from the active views "
+                              "(--pipeline.datamanager.seed-points auto; `random` keeps splatfacto's random start)",
+                              soft_wrap=True, highlight=False)
         if self.seed_points_mode == "colmap-initial":
             self._keep_points_seen_by_initial_views()
         elif self.seed_points_mode == "random":
@@ -285,11 +294,13 @@ class ActiveDatamanager(FullImageDatamanager):
     def _seed_points_mode(self) -> str:
         """`seed-points`, with the deprecated `strict-init True` read as `colmap-initial`."""
         mode = self.config.seed_points
-        if mode == "active" and self.config.seed_points_min < 1:
+        if mode in ("active", "auto") and self.config.seed_points_min < 1:
             raise ActiveViewError(f"--pipeline.datamanager.seed-points-min {self.config.seed_points_min}: the fewest "
                                   "triangulated points to start from must be at least 1")
         if not self.config.strict_init:
             return mode
+        if mode == "auto":  # the old flag's "points seen by the initial views" needs a COLMAP model: read as it was
+            mode = "colmap"
         if mode not in ("colmap", "colmap-initial"):
             raise ActiveViewError(f"--pipeline.datamanager.strict-init True contradicts --pipeline.datamanager.seed-points {mode}; "
                                   "drop strict-init")

@@ -17,7 +17,7 @@ from hpgs_ns.bench.names import FINAL_SET
 from hpgs_ns.bench.protocols import fisherrf_schedule
 from hpgs_ns.bench.report import device_counts, load_results, markdown_table, schedule_cost_table, work_table, write_report
 from hpgs_ns.bench.report.plots import camera_centres, camera_map
-from hpgs_ns.bench.results import RunResult, SourceRun, load_final_sets
+from hpgs_ns.bench.results import Provenance, RunResult, SourceRun, load_final_sets
 from hpgs_ns.bench.runs import Bench, Job, resolve_scenes, run_settings, summed_work, train_args
 from hpgs_ns.bench.suites import scene_from_folder
 from hpgs_ns.errors import UserError
@@ -69,6 +69,7 @@ def test_tiny_bench_writes_results_table_plots_and_resumes(tiny_bench, tiny_scen
     assert [(w["name"], w["image"]) for w in farthest.worst_views] == [(v.name, f"seed0-worst{k}.jpg") for k, v in enumerate(lowest)]
     assert all(result.with_name(w["image"]).stat().st_size > 1000 for w in farthest.worst_views)
     assert all(r.num_gaussians and r.num_gaussians > 100 for r in rows)  # the tiny scene starts from 1500 points
+    assert {r.seed_points for r in rows} == {"colmap"}  # `auto` as resolved: the tiny scene has a point cloud
     # the table reports each run's own numbers: one seed, so no spread
     table = (bench.out / "table.md").read_text()
     assert (f"| {tiny_scene.name} | hpgs | farthest | 1 | 13 | {farthest.test.psnr:.2f} | {farthest.test.ssim:.3f} | "
@@ -214,6 +215,23 @@ def test_table_means_and_spreads_over_seeds():
     # PSNR 21 +- 1 (sample SD), SSIM 0.6 +- 0.1, wall: the mean of the solo runs
     assert ("| s | hpgs | fisher | 3 | 27 | 21.00 ± 1.00 | 0.600 ± 0.100 | 0.300 ± 0.000 | cpu x3 | 200 | 0.0 |"
             in markdown_table(rows))
+
+
+def test_the_scenes_table_says_which_start_each_scenes_runs_used():
+    from hpgs_ns.bench.report.tables import scenes_table
+
+    def older(scene, command):  # a run from before `seed_points` was recorded: its command tells
+        return dataclasses.replace(make_result(scene, seed=2), provenance=Provenance(command=command))
+
+    rows = [make_result("fox", seed_points="active", num_test_views=8), make_result("fox", seed=1, seed_points="active"),
+            make_result("bonsai", seed_points="colmap", num_test_views=9), make_result("bonsai", seed=1),
+            older("bonsai", "python -m nerfstudio.scripts.train hpgs --pipeline.datamanager.seed-points=random"),
+            older("fox", "python -m nerfstudio.scripts.train hpgs --data fox"),
+            older("juicebox", "ns-train hpgs --pipeline.datamanager.strict-init True")]
+    table = scenes_table(rows)
+    assert "| fox | ? | 8 | 0, 1, 2 | active, colmap |" in table  # colmap: the default before `auto`
+    assert "| bonsai | ? | 9 | 0, 1, 2 | colmap, not recorded, random |" in table
+    assert "| juicebox | ? | ? | 2 | colmap-initial |" in table
 
 
 def test_table_names_the_devices_behind_each_row():

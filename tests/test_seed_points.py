@@ -1,5 +1,5 @@
-"""`--pipeline.datamanager.seed-points`: where the splat's seed points come from (colmap, colmap-initial, active,
-random), the Gaussians a round adds in `active` mode (`add_gaussians`), and `strict-init True` read as
+"""`--pipeline.datamanager.seed-points`: where the splat's seed points come from (auto, colmap, colmap-initial,
+active, random), the Gaussians a round adds in `active` mode (`add_gaussians`), and `strict-init True` read as
 `colmap-initial`."""
 
 from __future__ import annotations
@@ -94,6 +94,26 @@ def test_active_with_too_few_matches_starts_from_random_points_with_one_line(tin
     assert count < triangulate.DEFAULT_MIN_POINTS
     assert spy == [trainer.pipeline.datamanager.active]
     assert trainer.pipeline.model.num_points == 3000  # splatfacto's random init
+
+
+def test_auto_keeps_the_captures_points_and_triangulates_only_without_them(tiny_scene, tmp_path, spy, capsys):
+    from hpgs_ns.scenes.colmap_model import read_points3D
+
+    cfg = short_config(tiny_scene, tmp_path / "with", steps=1, rounds=0)
+    assert cfg.pipeline.datamanager.seed_points == "auto"  # the default
+    trainer = setup_trainer(cfg)
+    assert spy == [] and trainer.pipeline.datamanager.seed_points_mode == "colmap"
+    assert trainer.pipeline.model.num_points == len(read_points3D(tiny_scene / "sparse" / "0"))
+    capsys.readouterr()
+    cfg = short_config(tiny_scene, tmp_path / "without", steps=1, rounds=0)
+    cfg.pipeline.datamanager.dataparser.load_3D_points = False  # a capture without a point cloud
+    cfg.pipeline.model.num_random = 3000
+    trainer = setup_trainer(cfg)
+    dm = trainer.pipeline.datamanager
+    assert spy == [dm.active] and dm.seed_points_mode == "active"  # after-add's active-start restarts apply too
+    out = " ".join((lambda o: o.out + o.err)(capsys.readouterr()).split())
+    assert "the capture has no point cloud, so they are triangulated from the active views" in out
+    assert trainer.pipeline.model.num_points == 3000  # the tiny scene triangulates too few: random, one line
 
 
 def test_random_mode_is_splatfactos_random_init(tiny_scene, tmp_path):

@@ -188,6 +188,9 @@ class RunResult:
     """Per test view metrics at the end (empty for runs that did not record them)."""
     num_gaussians: Optional[int] = None
     """The splat's size at the end (None in files written before it)."""
+    seed_points: Optional[str] = None
+    """The start it trained from (`--pipeline.datamanager.seed-points` as resolved: colmap, colmap-initial, active
+    or random; `auto` is colmap or active); None in files written before it."""
     worst_views: List[Dict[str, Any]] = field(default_factory=list)
     """The lowest-PSNR test views, each {name, psnr, image}: `image` is a JPEG beside this JSON (ground truth |
     render), to look at what moved a run's mean."""
@@ -198,6 +201,21 @@ class RunResult:
     @property
     def is_reference(self) -> bool:
         return is_reference(self.selector)
+
+    @property
+    def start(self) -> Optional[str]:
+        """The seed points it trained from: `seed_points` where recorded; older runs predate `auto`, so their
+        command's `--pipeline.datamanager.seed-points` (or `strict-init True`), else `colmap`, the default then.
+        None without a command."""
+        if self.seed_points:
+            return self.seed_points
+        words = [w for word in shlex.split(self.provenance.command or "") for w in word.split("=", 1)]
+        if not words:
+            return None
+        named = {words[i]: words[i + 1] for i in range(len(words) - 1) if words[i].startswith("--")}
+        if named.get("--pipeline.datamanager.strict-init") == "True":
+            return "colmap-initial"
+        return named.get("--pipeline.datamanager.seed-points", "colmap")
 
     @property
     def final_views(self) -> List[str]:
@@ -244,7 +262,7 @@ class RunResult:
                 timing=Timing(**_pick(Timing, data["timing"])),
                 **{k: data[k] for k in ("repeat", "smoke", "steps", "data", "dataparser", "num_test_views",
                                         "num_train_views", "num_views_final", "initial_views", "chosen_views",
-                                        "selection_work", "worst_views", "num_gaussians") if k in data},
+                                        "selection_work", "worst_views", "num_gaussians", "seed_points") if k in data},
                 psnr_per_round=[RoundPsnr(**_pick(RoundPsnr, p)) for p in data.get("psnr_per_round", [])],
                 psnr_at_round_steps={int(k): float(v) for k, v in (data.get("psnr_at_round_steps") or {}).items()},
                 test_views=[ViewMetrics(**_pick(ViewMetrics, v)) for v in data.get("test_views", [])],

@@ -587,6 +587,7 @@ def run_one(bench: Bench, job: Job, env: Optional[Dict[str, str]] = None, sweep:
         selection_work=summed_work(rounds),
         worst_views=worst_views,
         num_gaussians=metrics.get("num_gaussians"),
+        seed_points=selected.get("seed_points"),
         initial_views=selected["initial"],
         chosen_views=[v for r in rounds for v in r["chosen"]],
         provenance=Provenance(command=shlex.join(cmd), device=device_name(), git_commit=provenance.git_commit(),

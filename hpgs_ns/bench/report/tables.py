@@ -136,14 +136,15 @@ def work_table(rows: Sequence[RunResult]) -> str:
 def scenes_table(rows: Sequence[RunResult]) -> str:
     """Each scene's training and test views and the seeds run (small test sets make PSNR partly a matter of
     which test viewpoints the picks sit near)."""
-    lines = ["| scene | training views | test views | seeds |", "|---|---|---|---|"]
+    lines = ["| scene | training views | test views | seeds | seed points |", "|---|---|---|---|---|"]
     for scene in sorted({r.scene for r in rows}):
         group = [r for r in rows if r.scene == scene]
         train = max((r.num_train_views or r.num_views_final for r in group if r.selector == ALL), default=None)
         train = train or max((r.num_train_views or 0 for r in group), default=0) or "?"
         seeds = sorted({r.seed for r in group if not r.is_reference})
         tests = group[0].num_test_views
-        lines.append(f"| {scene} | {train} | {'?' if tests is None else tests} | {', '.join(map(str, seeds))} |")
+        starts = ", ".join(sorted({r.start or "not recorded" for r in group}))  # which start each number used
+        lines.append(f"| {scene} | {train} | {'?' if tests is None else tests} | {', '.join(map(str, seeds))} | {starts} |")
     return "\n".join(lines)
 
 
