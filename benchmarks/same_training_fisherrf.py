@@ -3,7 +3,8 @@ sys.path, its numbers as JSON: run it on two commits to check that they train th
 (complements benchmarks/same_numbers.py, whose runs are 60-step HP-GS-style rounds).
 
     git worktree add /tmp/old COMMIT
-    PYTHONPATH=/tmp/old python benchmarks/same_training_fisherrf.py --scene /tmp/ring --out /tmp/old.json [--random-init]
+    PYTHONPATH=/tmp/old python benchmarks/same_training_fisherrf.py --scene /tmp/ring --out /tmp/old.json \
+        [--random-init] [--seed-points active]
     python benchmarks/same_training_fisherrf.py --scene /tmp/ring --out /tmp/new.json --compare /tmp/old.json
 
 The scene: `hpgs_ns.scenes.synthetic.make_scene(Path("/tmp/ring"), layout="ring", num_cameras=40, width=64,
@@ -31,9 +32,11 @@ def main() -> None:
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--random-init", action="store_true", help="random points (restarts at 8 and 16 views)")
+    parser.add_argument("--seed-points", default=None, help="--pipeline.datamanager.seed-points (default: the trainer's)")
     parser.add_argument("--compare", type=Path, default=None)
     args = parser.parse_args()
     extra = "--pipeline.model.num-downscales 0" + (" --pipeline.model.random-init True" if args.random_init else "")
+    extra += f" --pipeline.datamanager.seed-points {args.seed_points}" if args.seed_points else ""
     with tempfile.TemporaryDirectory() as tmp:
         bench = Bench(scenes=[args.scene], out=Path(tmp), selectors=["farthest"], seeds=[args.seed],
                       protocols=["fisherrf"], step_scale=0.01, initial_views=4, rasterizer="cpu", references=False,
@@ -43,6 +46,7 @@ def main() -> None:
         data = json.loads(path.read_text())
     keep = {k: data["test"][k] for k in ("psnr", "ssim", "lpips")}
     result = {"package": str(Path(hpgs_ns.__file__).parent), "seed": args.seed, "random_init": args.random_init,
+              "seed_points": args.seed_points,
               "test": keep, "chosen": data["chosen_views"], "psnr_per_round": data["psnr_per_round"]}
     write_json_atomic(args.out, result)
     print(json.dumps(keep))

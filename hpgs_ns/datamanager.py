@@ -81,7 +81,8 @@ class ActiveDatamanagerConfig(FullImageDatamanagerConfig):
     -> random points, with one line naming the count. `random`: splatfacto's random points (as
     --pipeline.model.random-init True)."""
     random_points: Literal["cube", "views"] = "cube"
-    """Where a splat with no seed points starts (no point cloud, seed-points random, or active that found too few):
+    """Where a splat with no seed points starts (colmap without a point cloud, seed-points random, or active that
+    found too few):
     `cube`, splatfacto's random points in a cube of side --pipeline.model.random-scale around the origin; `views`,
     points on the active views' pixel rays at distances around where their optical axes meet, each in its pixel's
     colour (`hpgs_ns.scenes.view_points`), drawn again from all active views when the splat restarts. Either is a
@@ -216,13 +217,18 @@ class ActiveDatamanager(FullImageDatamanager):
         self.triangulation: Optional[Any] = None
         """The `TriangulationWorkspace` of `seed-points active` (features and matches of the views seen so far)."""
         self.seed_points_mode = self._seed_points_mode()
+        points = self.train_dataparser_outputs.metadata.get("points3D_xyz")
+        has_points = points is not None and len(points) > 0
         if self.seed_points_mode == "auto":
-            has_points = "points3D_xyz" in self.train_dataparser_outputs.metadata
             self.seed_points_mode = "colmap" if has_points else "active"
             if not has_points and test_mode == "val":
                 CONSOLE.print("seed points: the capture has no point cloud, so they are triangulated from the active views "
-                              "(--pipeline.datamanager.seed-points auto; `random` keeps splatfacto's random start)",
+                              "(--pipeline.datamanager.seed-points auto; `colmap` keeps splatfacto's random start)",
                               soft_wrap=True, highlight=False)
+        elif self.seed_points_mode == "colmap" and not has_points and test_mode == "val" and self.config.random_points == "cube":
+            CONSOLE.print("seed points: the capture has no point cloud, so the splat starts from random points "
+                          "(--pipeline.datamanager.seed-points auto triangulates the active views instead)",
+                          soft_wrap=True, highlight=False)
         if self.seed_points_mode == "colmap-initial":
             self._keep_points_seen_by_initial_views()
         elif self.seed_points_mode == "random":

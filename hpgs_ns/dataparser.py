@@ -334,7 +334,6 @@ class HpgsNerfstudio(Nerfstudio):
     """nerfstudio's `Nerfstudio` parser; the seed points come from `plyfile` and no question is asked."""
 
     config: HpgsNerfstudioDataParserConfig
-    _told = False  # the "no points" line is said once, not once per split
 
     def _generate_dataparser_outputs(self, split: str = "train"):
         data = Path(self.config.data)
@@ -368,11 +367,7 @@ class HpgsNerfstudio(Nerfstudio):
             root = meta_path.parent
             ply = root / meta["ply_file_path"] if "ply_file_path" in meta else root / "sparse_pc.ply"
             points = read_ply_points(ply) if ply.is_file() else None
-            if points is None:
-                if not HpgsNerfstudio._told:
-                    CONSOLE.print(f"[yellow]No seed points ({ply.name} not found or empty): the splat starts from random points")
-                    HpgsNerfstudio._told = True
-            else:
+            if points is not None:  # none: the datamanager says what the splat starts from (`seed-points`)
                 xyz, rgb = points
                 transform = outputs.dataparser_transform.float()
                 xyz = torch.cat([xyz, torch.ones_like(xyz[:, :1])], -1) @ transform.T * outputs.dataparser_scale

@@ -57,10 +57,14 @@ class HpgsPipeline(VanillaPipeline):
             raise OptionError("--pipeline.model.random-init True starts from splatfacto's cube, so "
                               "--pipeline.datamanager.random-points views would do nothing; pass one of them "
                               "(seed-points random with random-points views for rays without the capture's points)")
+        if getattr(config.model, "random_init", False) and getattr(config.datamanager, "seed_points", None) == "auto":
+            config.datamanager.seed_points = "colmap"  # random-init asks for a random start: nothing to triangulate
         super().__init__(config, device, test_mode, *args, **kwargs)
         training = test_mode == "val"
         selection = config.selection
         signature = selection.resume_signature(self.datamanager.config.seed)
+        # the start as resolved (`auto` is colmap or active); checkpoints without it read as colmap, the default then
+        signature["seed-points"] = str(getattr(self.datamanager, "seed_points_mode", "colmap"))
         if getattr(self.datamanager, "seed_points_mode", None) == "active":
             # written since active starts restart by default: a checkpoint without it (0.3's) never restarted
             signature["after-add.restart-active-starts"] = str(bool(selection.after_add.restart_active_starts))

@@ -288,11 +288,20 @@ def check_resume_matches(pipeline) -> None:
     now = getattr(datamanager, "selection_signature", None)
     if not saved or not now:
         return  # a checkpoint written before 0.3, or not an hpgs pipeline
+    if "seed-points" not in saved and "seed-points" in now:
+        # written since `auto`: an older checkpoint's start shows only in whether it has active starts' key (0.4's);
+        # without it, a start other than active is taken as unchanged and an active one left to differ
+        if "after-add.restart-active-starts" in saved:
+            saved = {**saved, "seed-points": "active"}
+        elif now["seed-points"] != "active":
+            saved = {**saved, "seed-points": now["seed-points"]}
     changed = [key for key in sorted(set(saved) | set(now)) if saved.get(key) != now.get(key)]
     if changed:
         diff = "; ".join(f"{key}: checkpoint {saved.get(key, '(unset)')}, now {now.get(key, '(unset)')}" for key in changed)
+        hint = (" (--pipeline.datamanager.seed-points as it was trained: the default was colmap before auto)"
+                if "seed-points" in changed else "")
         raise CheckpointError(f"this resume changes what the checkpoint was trained with ({diff}); resume with the "
-                              "checkpoint's options, or start a new run without --load-dir")
+                              f"checkpoint's options{hint}, or start a new run without --load-dir")
 
 
 def write_final_eval(trainer: Trainer, path: Path, worst_views: int = 0) -> Path:

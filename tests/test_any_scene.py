@@ -59,7 +59,10 @@ def test_ns_train_hpgs_on_a_nerfstudio_data_capture_then_stock_ns_eval_and_ns_vi
         "--pipeline.model.num-downscales", "0", "nerfstudio-data", "--data", str(fox), "--downscale-factor", "4",
     )
     assert proc.returncode == 0, proc.stderr[-3000:]
-    assert "No seed points (sparse_pc.ply not found or empty): the splat starts from random points" in proc.stdout
+    # no point cloud: `seed-points auto` triangulates the active views (or falls back to random points, saying so)
+    out = " ".join(proc.stdout.split())
+    assert "seed points: the capture has no point cloud, so they are triangulated from the active views" in out
+    assert "starts from random points" not in out or "Seed points: only" in out
     run = tmp_path / "x" / "hpgs" / "run"
     log = json.loads((run / "selected_views.json").read_text())
     assert [r["step"] for r in log["rounds"]] == [15, 30]
@@ -158,23 +161,25 @@ def test_splits_without_test_views_or_overlapping_are_one_line_errors(fox, tiny_
         run_training(cfg)
 
 
-def test_active_seed_points_on_a_capture_without_a_ply_say_only_what_they_do(fox, tmp_path, capsys):
-    from hpgs_ns.dataparser import HpgsNerfstudio
-
-    saved_told, HpgsNerfstudio._told = HpgsNerfstudio._told, False  # the "no seed points" line prints once a process
-    try:
-        cfg = short_config(fox, tmp_path, steps=1, rounds=0, initial=8, seed_points="active")
-        cfg.pipeline.datamanager.dataparser = HpgsNerfstudioDataParserConfig(data=fox, downscale_factor=4)
-        trainer = cfg.setup(local_rank=0, world_size=1)
-        trainer.setup()
-    finally:
-        HpgsNerfstudio._told = saved_told
+@pytest.mark.parametrize("mode", ["active", "auto", "colmap"])
+def test_seed_points_on_a_capture_without_a_ply_say_only_what_they_do(fox, tmp_path, capsys, mode):
+    cfg = short_config(fox, tmp_path, steps=1, rounds=0, initial=8, seed_points=mode)
+    cfg.pipeline.datamanager.dataparser = HpgsNerfstudioDataParserConfig(data=fox, downscale_factor=4)
+    cfg.pipeline.model.num_random = 3000
+    trainer = cfg.setup(local_rank=0, world_size=1)
+    trainer.setup()
     assert cfg.pipeline.datamanager.dataparser.load_3D_points is True  # skipped for this setup only, not changed
     out = capsys.readouterr()
-    lines = [line for line in (out.out + out.err).splitlines() if "seed points" in line.lower()]
-    # one line: what was triangulated; not the dataparser's "no seed points: random start" before it
-    assert len(lines) == 1 and lines[0].startswith("seed points: "), lines
-    assert int(lines[0].split()[2]) == trainer.pipeline.model.num_points >= 100
+    lines = [line for line in (out.out + out.err).splitlines() if "seed points" in line.lower() or "random points" in line]
+    num_points = trainer.pipeline.model.num_points
+    if mode == "colmap":  # the old default: splatfacto's random start, said once
+        assert len(lines) == 1 and "so the splat starts from random points" in lines[0], lines
+        assert num_points == 3000
+        return
+    # what was triangulated (auto: after one line saying why); nothing says "random start"
+    assert len(lines) == (2 if mode == "auto" else 1), lines
+    assert mode == "active" or "no point cloud, so they are triangulated" in lines[0]
+    assert lines[-1].startswith("seed points: ") and int(lines[-1].split()[2]) == num_points >= 100
 
 
 def test_strict_init_outside_colmap_is_a_one_line_error(fox, tmp_path):

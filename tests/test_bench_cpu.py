@@ -17,7 +17,7 @@ from hpgs_ns.bench.names import FINAL_SET
 from hpgs_ns.bench.protocols import fisherrf_schedule
 from hpgs_ns.bench.report import device_counts, load_results, markdown_table, schedule_cost_table, work_table, write_report
 from hpgs_ns.bench.report.plots import camera_centres, camera_map
-from hpgs_ns.bench.results import Provenance, RunResult, SourceRun, load_final_sets
+from hpgs_ns.bench.results import Provenance, RunResult, SourceRun, load_final_sets, start_label
 from hpgs_ns.bench.runs import Bench, Job, resolve_scenes, run_settings, summed_work, train_args
 from hpgs_ns.bench.suites import scene_from_folder
 from hpgs_ns.errors import UserError
@@ -226,12 +226,17 @@ def test_the_scenes_table_says_which_start_each_scenes_runs_used():
     rows = [make_result("fox", seed_points="active", num_test_views=8), make_result("fox", seed=1, seed_points="active"),
             make_result("bonsai", seed_points="colmap", num_test_views=9), make_result("bonsai", seed=1),
             older("bonsai", "python -m nerfstudio.scripts.train hpgs --pipeline.datamanager.seed-points=random"),
-            older("fox", "python -m nerfstudio.scripts.train hpgs --data fox"),
-            older("juicebox", "ns-train hpgs --pipeline.datamanager.strict-init True")]
+            older("fox", "python -m nerfstudio.scripts.train hpgs --data fox nerfstudio-data --downscale-factor 2"),
+            older("juicebox", "ns-train hpgs --pipeline.datamanager.strict-init True"),
+            older("stitch", "ns-train hpgs --pipeline.model.random-init True"), older("stitch", "ns-train hpgs")]
     table = scenes_table(rows)
-    assert "| fox | ? | 8 | 0, 1, 2 | active, colmap |" in table  # colmap: the default before `auto`
+    # before `auto` the default was colmap: a random start where the capture had no point cloud
+    assert "| fox | ? | 8 | 0, 1, 2 | active, colmap (random without a point cloud) |" in table
     assert "| bonsai | ? | 9 | 0, 1, 2 | colmap, not recorded, random |" in table
     assert "| juicebox | ? | ? | 2 | colmap-initial |" in table
+    assert "| stitch | ? | ? | 2 | colmap, random |" in table
+    assert [start_label(m, r) for m, r in (("colmap", False), ("colmap", True), ("active", True), ("random", True), (None, False))] == [
+        "colmap", "random", "active (random at step 0)", "random", None]
 
 
 def test_table_names_the_devices_behind_each_row():

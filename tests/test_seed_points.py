@@ -114,6 +114,13 @@ def test_auto_keeps_the_captures_points_and_triangulates_only_without_them(tiny_
     out = " ".join((lambda o: o.out + o.err)(capsys.readouterr()).split())
     assert "the capture has no point cloud, so they are triangulated from the active views" in out
     assert trainer.pipeline.model.num_points == 3000  # the tiny scene triangulates too few: random, one line
+    # --pipeline.model.random-init True asks for a random start: auto triangulates nothing, no round adds points
+    cfg = short_config(tiny_scene, tmp_path / "random-init", steps=1, rounds=0)
+    cfg.pipeline.datamanager.dataparser.load_3D_points = False
+    cfg.pipeline.model.random_init, cfg.pipeline.model.num_random = True, 2000
+    trainer = setup_trainer(cfg)
+    assert len(spy) == 1 and trainer.pipeline.datamanager.seed_points_mode == "colmap"
+    assert trainer.pipeline.model.num_points == 2000
 
 
 def test_random_mode_is_splatfactos_random_init(tiny_scene, tmp_path):
@@ -233,6 +240,18 @@ def test_an_active_start_restarts_by_default_at_twice_its_views_from_their_trian
     old = {k: v for k, v in now.items() if k != "after-add.restart-active-starts"}
     with pytest.raises(CheckpointError, match="after-add.restart-active-starts: checkpoint \\(unset\\), now True"):
         check_resume_matches(SimpleNamespace(datamanager=SimpleNamespace(loaded_selection_signature=old, selection_signature=now)))
+    # a checkpoint from before `auto` (no seed-points key): an active one resumes under auto; a random start resumed
+    # under auto, which now triangulates, is refused naming the option
+    def resume(saved, current):
+        check_resume_matches(SimpleNamespace(datamanager=SimpleNamespace(loaded_selection_signature=saved, selection_signature=current)))
+
+    assert now["seed-points"] == "active"
+    resume({k: v for k, v in now.items() if k != "seed-points"}, now)
+    with pytest.raises(CheckpointError, match=r"seed-points: checkpoint \(unset\), now active.*"
+                                              r"--pipeline.datamanager.seed-points as it was trained"):
+        resume({k: v for k, v in old.items() if k != "seed-points"}, now)
+    colmap_now = {**old, "seed-points": "colmap"}
+    resume({k: v for k, v in old.items() if k != "seed-points"}, colmap_now)  # a colmap run under auto: unchanged
 
 
 def test_without_pycolmap_each_round_says_so_in_one_line(tiny_scene, tmp_path, capsys, monkeypatch):

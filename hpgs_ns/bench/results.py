@@ -189,8 +189,8 @@ class RunResult:
     num_gaussians: Optional[int] = None
     """The splat's size at the end (None in files written before it)."""
     seed_points: Optional[str] = None
-    """The start it trained from (`--pipeline.datamanager.seed-points` as resolved: colmap, colmap-initial, active
-    or random; `auto` is colmap or active); None in files written before it."""
+    """What the splat started from (`start_label`: the `--pipeline.datamanager.seed-points` mode as resolved, `auto`
+    being colmap or active, or `random` where it gave no points); None in files written before it (see `start`)."""
     worst_views: List[Dict[str, Any]] = field(default_factory=list)
     """The lowest-PSNR test views, each {name, psnr, image}: `image` is a JPEG beside this JSON (ground truth |
     render), to look at what moved a run's mean."""
@@ -204,18 +204,27 @@ class RunResult:
 
     @property
     def start(self) -> Optional[str]:
-        """The seed points it trained from: `seed_points` where recorded; older runs predate `auto`, so their
-        command's `--pipeline.datamanager.seed-points` (or `strict-init True`), else `colmap`, the default then.
-        None without a command."""
+        """The seed points it trained from (`start_label`) where recorded; older runs predate that, so it is read
+        from their command: `--pipeline.model.random-init True` is `random`, else the named `seed-points` (or
+        `strict-init True`), else `colmap`, the default then, which is a random start on a capture without a point
+        cloud (said for nerfstudio-data and Blender captures, whose files may lack one). None without a command."""
         if self.seed_points:
             return self.seed_points
-        words = [w for word in shlex.split(self.provenance.command or "") for w in word.split("=", 1)]
+        words = shlex.split(self.provenance.command or "")
         if not words:
             return None
-        named = {words[i]: words[i + 1] for i in range(len(words) - 1) if words[i].startswith("--")}
+        pairs = [w.split("=", 1) if w.startswith("--") and "=" in w else [w] for w in words]
+        flat = [w for pair in pairs for w in pair]
+        named = {flat[i]: flat[i + 1] for i in range(len(flat) - 1) if flat[i].startswith("--")}
+        if named.get("--pipeline.model.random-init") == "True":
+            return "random"
         if named.get("--pipeline.datamanager.strict-init") == "True":
             return "colmap-initial"
-        return named.get("--pipeline.datamanager.seed-points", "colmap")
+        mode = named.get("--pipeline.datamanager.seed-points", "colmap")
+        without_colmap = {"nerfstudio-data", "blender-data"}  # dataparsers whose captures may have no point cloud
+        if mode == "colmap" and (without_colmap & set(words) or self.dataparser in without_colmap):
+            return "colmap (random without a point cloud)"
+        return mode
 
     @property
     def final_views(self) -> List[str]:
@@ -282,6 +291,17 @@ class RunResult:
         except (OSError, ValueError) as err:
             raise ResultError(f"{path} is not readable JSON ({err}); re-run it or move it out of the results "
                               "folder") from None
+
+
+def start_label(mode: Optional[str], random_start: bool) -> Optional[str]:
+    """What a run's splat started from, for the report: its `seed-points` mode as resolved, `random` where that
+    gave no points (`colmap` without a point cloud, `random-init`), `<mode> (random at step 0)` where `active` or
+    `colmap-initial` found too few. None where the run did not record it."""
+    if mode is None:
+        return None
+    if not random_start or mode == "random":
+        return mode
+    return "random" if mode == "colmap" else f"{mode} (random at step 0)"
 
 
 def _from_v1(flat: Mapping[str, Any]) -> Dict[str, Any]:

@@ -41,7 +41,7 @@ from hpgs_ns.bench.executors import ExecutorConfig, make_executor, runs_per_devi
 from hpgs_ns.bench.names import ALL, FINAL_SET, INITIAL, REFERENCES, is_reference
 from hpgs_ns.bench.protocols import DEFAULT_SELECTORS, PROTOCOLS, Protocol, scaled
 from hpgs_ns.bench.report import DEFAULT_RESULTS_PAGE, write_report
-from hpgs_ns.bench.results import Metrics, Provenance, RoundPsnr, RunResult, SourceRun, Timing, ViewMetrics
+from hpgs_ns.bench.results import Metrics, Provenance, RoundPsnr, RunResult, SourceRun, Timing, ViewMetrics, start_label
 from hpgs_ns.bench.stress import PerturbationName, StressConfig, perturbed_copy
 from hpgs_ns.bench.suites import SYNTHETIC, Scene, load_suite, scene_from_folder
 from hpgs_ns.errors import UserError
@@ -587,7 +587,7 @@ def run_one(bench: Bench, job: Job, env: Optional[Dict[str, str]] = None, sweep:
         selection_work=summed_work(rounds),
         worst_views=worst_views,
         num_gaussians=metrics.get("num_gaussians"),
-        seed_points=selected.get("seed_points"),
+        seed_points=start_label(selected.get("seed_points"), bool(selected.get("random_start"))),
         initial_views=selected["initial"],
         chosen_views=[v for r in rounds for v in r["chosen"]],
         provenance=Provenance(command=shlex.join(cmd), device=device_name(), git_commit=provenance.git_commit(),

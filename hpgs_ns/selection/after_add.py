@@ -50,8 +50,8 @@ class AfterAddConfig:
     the views then train together, as they would from step 0. Empty: see restart-random-starts. A restart round
     runs no other after-add option."""
     restart_random_starts: bool = True
-    """When restart-at-views is empty, a splat that started from random points (no point cloud, random-init or
-    seed-points random) restarts at twice and four times the initial view count (FisherRF's 4 views: at 8 and 16;
+    """When restart-at-views is empty, a splat that started from random points (seed-points colmap without a point
+    cloud, random-init or seed-points random) restarts at twice and four times the initial view count (FisherRF's 4 views: at 8 and 16;
     HP-GS's 20 + 7: never). Random starts lock in what the first views built; seeded ones barely do
     (docs/active-training.md). False: never restart unless restart-at-views says so."""
 

@@ -413,6 +413,7 @@ class SelectionRounds:
             "seed": self.seed,
             "reset_after_add": self.config.reset_after_add,
             "seed_points": getattr(dm, "seed_points_mode", None),  # as resolved: `auto` is colmap or active
+            "random_start": bool(getattr(self.model, "random_start", False)),  # that mode found no points
             "initial": [names[i] for i in dm.initial_views],
             "rounds": [record.to_dict() for record in dm.history],
             "active": [names[i] for i in dm.active],
