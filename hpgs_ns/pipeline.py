@@ -63,7 +63,7 @@ class HpgsPipeline(VanillaPipeline):
         training = test_mode == "val"
         selection = config.selection
         signature = selection.resume_signature(self.datamanager.config.seed)
-        # the start as resolved (`auto` is colmap or active); checkpoints without it read as colmap, the default then
+        # the start as resolved (`auto` is colmap or active); checkpoints without it: trainer.check_resume_matches
         signature["seed-points"] = str(getattr(self.datamanager, "seed_points_mode", "colmap"))
         if getattr(self.datamanager, "seed_points_mode", None) == "active":
             # written since active starts restart by default: a checkpoint without it (0.3's) never restarted
