@@ -18,6 +18,7 @@ import hashlib
 import io
 import os
 import subprocess
+import threading
 import tokenize
 from pathlib import Path
 from typing import Dict, List, Optional
@@ -26,6 +27,10 @@ from hpgs_ns.bench.names import REFERENCES
 
 PACKAGE = Path(__file__).resolve().parent.parent
 INSTALLED = PACKAGE  # where this package's modules are imported from (PACKAGE is the tree hashed)
+# `hpgs bench --executor local` builds run records in threads; CPython 3.11's ast module keeps its recursion
+# depth in shared state, so two threads in `ast.parse` at once can raise "AST constructor recursion depth
+# mismatch" (python/cpython#106905). Parsing here is milliseconds: one thread at a time.
+PARSE_LOCK = threading.RLock()
 
 # Files (relative to hpgs_ns/) whose change can change any run's numbers.
 CODE_FILES = (
@@ -78,7 +83,8 @@ def code_text(path: Path) -> str:
     machine's Python and this one agree. A file that does not parse is taken whole."""
     text = Path(path).read_text(encoding="utf-8", errors="surrogateescape")
     try:
-        tree = ast.parse(text)
+        with PARSE_LOCK:
+            tree = ast.parse(text)
         tokens = list(tokenize.generate_tokens(io.StringIO(text).readline))
     except (SyntaxError, ValueError, tokenize.TokenError):
         return text
@@ -132,7 +138,8 @@ def selector_options(selector: str, extra_args: List[str]) -> Optional[Dict]:
     if own:
         import tyro
 
-        config = tyro.cli(type(config), args=own, default=config)
+        with PARSE_LOCK:  # tyro reads the options' docstrings from source
+            config = tyro.cli(type(config), args=own, default=config)
     return {k: (str(v) if isinstance(v, Path) else v) for k, v in dataclasses.asdict(config).items() if k != "_target"}
 
 
