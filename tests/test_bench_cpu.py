@@ -17,7 +17,7 @@ from hpgs_ns.bench.names import FINAL_SET
 from hpgs_ns.bench.protocols import fisherrf_schedule
 from hpgs_ns.bench.report import device_counts, load_results, markdown_table, schedule_cost_table, work_table, write_report
 from hpgs_ns.bench.report.plots import camera_centres, camera_map
-from hpgs_ns.bench.results import Provenance, RunResult, SourceRun, load_final_sets, start_label
+from hpgs_ns.bench.results import Provenance, RunResult, SourceRun, command_options, data_from_command, load_final_sets, start_label
 from hpgs_ns.bench.runs import Bench, Job, resolve_scenes, run_settings, summed_work, train_args
 from hpgs_ns.bench.suites import scene_from_folder
 from hpgs_ns.errors import UserError
@@ -397,3 +397,15 @@ def test_max_runs_takes_the_first_runs_and_says_how_many_are_left(tiny_scene, tm
     assert bench.within_max_runs(jobs, 0, "final-set runs") == []  # the runs used the whole budget
     assert "--max-runs 2: 3 final-set runs left" in " ".join(capsys.readouterr().err.split())
     assert bench.within_max_runs(jobs, None, "runs") == jobs and bench.within_max_runs(jobs, 5, "runs") == jobs
+
+
+def test_a_recorded_command_reads_the_same_with_either_spelling_of_its_options():
+    words = ["ns-train", "hpgs", "--data=scenes/fox", "--pipeline.datamanager.seed-points", "active", "nerfstudio-data",
+             "--downscale-factor", "2", "--pipeline.datamanager.seed-points=colmap"]
+    # the last of a repeated flag wins, as tyro reads it
+    assert command_options(words) == {"--data": "scenes/fox", "--pipeline.datamanager.seed-points": "colmap",
+                                      "--downscale-factor": "2"}
+    assert data_from_command("ns-train hpgs --data scenes/fox nerfstudio-data") == "scenes/fox"
+    assert data_from_command("ns-train hpgs --data='my scenes/fox' nerfstudio-data") == "my scenes/fox"
+    assert data_from_command("ns-train hpgs --vis tensorboard") is None
+    assert data_from_command("ns-train hpgs --data") is None

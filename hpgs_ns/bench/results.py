@@ -213,9 +213,7 @@ class RunResult:
         words = shlex.split(self.provenance.command or "")
         if not words:
             return None
-        pairs = [w.split("=", 1) if w.startswith("--") and "=" in w else [w] for w in words]
-        flat = [w for pair in pairs for w in pair]
-        named = {flat[i]: flat[i + 1] for i in range(len(flat) - 1) if flat[i].startswith("--")}
+        named = command_options(words)
         if named.get("--pipeline.model.random-init") == "True":
             return "random"
         if named.get("--pipeline.datamanager.strict-init") == "True":
@@ -325,10 +323,16 @@ def _from_v1(flat: Mapping[str, Any]) -> Dict[str, Any]:
     }
 
 
+def command_options(words: List[str]) -> Dict[str, str]:
+    """`--flag value` and `--flag=value` in a recorded command's words: flag -> the word after it (the last where a flag
+    repeats, as tyro reads it)."""
+    flat = [part for w in words for part in (w.split("=", 1) if w.startswith("--") and "=" in w else [w])]
+    return {flat[i]: flat[i + 1] for i in range(len(flat) - 1) if flat[i].startswith("--")}
+
+
 def data_from_command(command: str) -> Optional[str]:
     """The `--data` folder of a recorded `ns-train` command (None without one)."""
-    words = shlex.split(command)
-    return words[words.index("--data") + 1] if "--data" in words[:-1] else None
+    return command_options(shlex.split(command)).get("--data")
 
 
 def load_results(out: Path) -> List[RunResult]:
