@@ -59,3 +59,25 @@ def test_done_when_pools_farthest_and_random_runs_per_start_mode(tmp_path, judge
     # random arms pair with random arms, by scene and seed
     gains = judge_table.arm_gains(runs, "active-random", "colmap-random")
     assert gains == {"bonsai": {0: pytest.approx(0.5)}, "fox": {0: pytest.approx(0.5)}}
+
+
+def test_a_bench_folder_is_filed_per_start_and_selector_and_read_by_the_judge(tmp_path, judge_table):
+    import file_judge_runs
+
+    bench = tmp_path / "bench"  # `hpgs bench --out` layout
+    for selector, run, final in (("farthest", 20.0, 21.0), ("random", 19.0, 19.5), ("fisher", 22.0, 22.0)):
+        d = bench / "stitch" / "fisherrf" / selector
+        (d / "final-set").mkdir(parents=True)
+        (d / "seed0.json").write_text(json.dumps({"seed": 0, "test": {"psnr": run}, "initial_views": ["a"],
+                                                  "chosen_views": [], "worst_views": [{"image": "w.jpg"}]}))
+        (d / "w.jpg").write_bytes(b"jpeg")
+        (d / "final-set" / "seed0.json").write_text(json.dumps({"seed": 0, "test": {"psnr": final}}))
+    root = tmp_path / "judge"
+    written = file_judge_runs.file_runs(bench, "active", root)
+    assert sorted(p.relative_to(root).as_posix() for p in written) == [
+        "stitch/active-random/final-set/seed0.json", "stitch/active-random/random/seed0.json",
+        "stitch/active/farthest/seed0.json", "stitch/active/final-set/seed0.json"]  # fisher is not the judge's
+    assert (root / "stitch" / "active" / "farthest" / "w.jpg").read_bytes() == b"jpeg"
+    runs, _ = judge_table.load(root)
+    assert runs[("stitch", "active", "final-set")][0]["psnr"] == 21.0
+    assert runs[("stitch", "active-random", "final-set")][0]["psnr"] == 19.5
