@@ -310,12 +310,20 @@ def test_noise_and_throughput_tables():
     h100 = "NVIDIA H100 80GB HBM3"
     # 4 runs of 396 s started 1 s apart: a 399 s span, 3600 * 4 / 399 = 36.1 runs per hour
     runs = [make_result(device=h100, runs_per_gpu=4, sweep_id="x", started_at=100.0 + k, wall=396.0) for k in range(4)]
-    assert "| H100 | 4 | 4 | 399 | 36.1 | 396 |" in throughput_table(runs)
+    assert "| H100 | – | 4 | 4 | 399 | 36.1 | 396 |" in throughput_table(runs)
     # Two sweeps on one machine at the same time (3 and 4 runs per GPU): one span, 7 at once, not two rows.
     shared = [make_result(device=h100, runs_per_gpu=n, sweep_id=f"vm-500.{pid}", started_at=500.0, wall=900.0)
               for pid, n in ((11, 3),) * 3 + ((12, 4),) * 4]
     table = throughput_table(runs + shared)
-    assert "| H100 | 7 | 7 | 900 | 28.0 | 900 |" in table and table.count("| H100 |") == 2
+    assert "| H100 | – | 7 | 7 | 900 | 28.0 | 900 |" in table and table.count("| H100 |") == 2
+    # The same hour on one host: 8 runs on GPU 0 without MPS, 8 on GPU 1 seen under MPS: two spans, not 16 at once.
+    side = [make_result(device=h100, runs_per_gpu=8, sweep_id=f"vm-900.{g}", started_at=900.0, wall=w, gpu=g, mps=m)
+            for g, m, w in (("0", None, 1000.0), ("GPU-1a2b", True, 400.0)) for _ in range(8)]
+    table = throughput_table(side)
+    assert "| H100 | – | 8 | 8 | 1000 | 28.8 | 1000 |" in table and "| H100 | yes | 8 | 8 | 400 | 72.0 | 400 |" in table
+    mixed = side[8:15] + [make_result(device=h100, runs_per_gpu=8, sweep_id="vm-900.x", started_at=900.0, wall=400.0,
+                                      gpu="GPU-1a2b", mps=False)]
+    assert "| H100 | yes | 7 |" in throughput_table(mixed) and "| H100 | no | 1 |" in throughput_table(mixed)
 
 
 def test_timing_columns_take_only_runs_that_had_the_gpu_to_themselves():

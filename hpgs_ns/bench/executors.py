@@ -8,6 +8,7 @@ does is its caller's business (`hpgs bench`: `bench.runs.sweep_worker`). Ray and
 
 from __future__ import annotations
 
+import contextlib
 import os
 import queue
 from concurrent.futures import ThreadPoolExecutor, as_completed
@@ -17,6 +18,8 @@ from typing import Any, Callable, Dict, Iterator, List, Literal, Optional, Seque
 
 from rich.console import Console
 
+from hpgs_ns.bench import mps as cuda_mps
+from hpgs_ns.bench.mps import MpsMode
 from hpgs_ns.errors import UserError
 
 CONSOLE = Console(stderr=True)
@@ -39,6 +42,11 @@ class ExecutorConfig:
     most of 8's throughput at half its latency (measured: docs/benchmark.md, "Full GPUs and throughput"). Wall
     and per-step times of concurrent runs are not those of a run alone: the report keeps timing columns from solo
     runs (`--runs-per-gpu 1`)."""
+    mps: MpsMode = "auto"
+    """CUDA MPS for runs sharing a GPU, so their kernels overlap instead of taking turns: `auto` when more than one
+    run shares a GPU and `nvidia-cuda-mps-control` is on PATH or in the driver's folders, `on`, or `off`. `local`
+    and each Slurm job start one daemon per GPU and quit them when the runs end (a daemon you already run is used
+    and left running); on Ray, start it on the workers yourself (docs/benchmark.md)."""
     local_workers: Optional[int] = None
     """Concurrent runs for `local`: default `runs_per_gpu` per visible CUDA GPU (each sees only its own), else 1."""
     ray_address: Optional[str] = None
@@ -96,30 +104,43 @@ class LocalExecutor:
     def map(self, fn: Worker, items: Sequence[Any]) -> Iterator[Done]:
         gpus = visible_gpus()
         workers = self.config.local_workers or (len(gpus) * max(self.config.runs_per_gpu, 1) if gpus else 1)
-        if workers == 1:
-            for i, item in enumerate(items):
-                yield Done(i, fn(item, {}))
-            return
-        # Each slot is one GPU (runs_per_gpu slots per GPU; none on CPU); a run takes a slot for its whole duration.
-        slots: queue.Queue[Optional[str]] = queue.Queue()
-        for k in range(workers):
-            slots.put(gpus[k % len(gpus)] if gpus else None)
-        threads = os.environ.get("OMP_NUM_THREADS") or str(max((os.cpu_count() or 1) // workers, 1))
+        under_mps = cuda_mps.wanted(self.config.mps, sharing=bool(gpus) and workers > len(gpus))
+        with contextlib.ExitStack() as stack:
+            daemons = stack.enter_context(cuda_mps.daemons_for(gpus)) if under_mps else {}
+            if under_mps:
+                CONSOLE.print(f"hpgs bench: CUDA MPS on ({len(set(map(id, daemons.values())))} daemon(s))")
+            if workers == 1:
+                only = gpus[0] if daemons and gpus else None  # under --mps on, the first GPU's daemon
+                for i, item in enumerate(items):
+                    yield Done(i, fn(item, slot_env(only, daemons)))
+                return
+            # Each slot is one GPU (runs_per_gpu slots per GPU; none on CPU); a run takes a slot for its whole duration.
+            slots: queue.Queue[Optional[str]] = queue.Queue()
+            for k in range(workers):
+                slots.put(gpus[k % len(gpus)] if gpus else None)
+            threads = os.environ.get("OMP_NUM_THREADS") or str(max((os.cpu_count() or 1) // workers, 1))
 
-        def call(item: Any) -> Any:
-            slot = slots.get()
-            env = thread_env(int(threads))
-            if slot is not None:
-                env["CUDA_VISIBLE_DEVICES"] = slot
-            try:
-                return fn(item, env)
-            finally:
-                slots.put(slot)
+            def call(item: Any) -> Any:
+                slot = slots.get()
+                env = {**thread_env(int(threads)), **slot_env(slot, daemons)}
+                try:
+                    return fn(item, env)
+                finally:
+                    slots.put(slot)
 
-        with ThreadPoolExecutor(workers) as pool:
-            futures = {pool.submit(call, item): i for i, item in enumerate(items)}
-            for future in as_completed(futures):
-                yield Done(futures[future], future.result())
+            with ThreadPoolExecutor(workers) as pool:
+                futures = {pool.submit(call, item): i for i, item in enumerate(items)}
+                for future in as_completed(futures):
+                    yield Done(futures[future], future.result())
+
+
+def slot_env(gpu: Optional[str], daemons: Dict[Optional[str], "cuda_mps.Daemon"]) -> Dict[str, str]:
+    """A run's GPU and, under MPS, its daemon's folders (and the GPU by the name that daemon knows it by)."""
+    env = {"CUDA_VISIBLE_DEVICES": gpu} if gpu is not None else {}
+    daemon = daemons.get(gpu) or daemons.get(None)
+    if daemon is not None:
+        env.update(daemon.env())
+    return env
 
 
 class RayExecutor:
@@ -228,7 +249,7 @@ class SlurmExecutor:
         env = thread_env(max(cfg.slurm_cpus_per_run // n, 1))
         chunks = [list(range(start, min(start + n, len(items)))) for start in range(0, len(items), n)]
         jobs = executor.map_array(run_together, [fn] * len(chunks), [[items[i] for i in c] for c in chunks],
-                                  [env] * len(chunks))
+                                  [env] * len(chunks), [cfg.mps] * len(chunks))
         index = {id(job): chunk for job, chunk in zip(jobs, chunks)}
         CONSOLE.print(f"submitted {len(jobs)} jobs ({cfg.slurm_cluster}), logs under {self.folder}")
         poll = 10.0 if cfg.slurm_cluster == "slurm" else 0.5
@@ -244,12 +265,18 @@ class SlurmExecutor:
                 yield Done(i, value)
 
 
-def run_together(fn: Worker, items: Sequence[Any], env: Dict[str, str]) -> List[Any]:
-    """`fn` on every item at once, in threads (the runs of one Slurm job sharing its GPU)."""
-    if len(items) == 1:
-        return [fn(items[0], env)]
-    with ThreadPoolExecutor(len(items)) as pool:
-        return list(pool.map(lambda item: fn(item, env), items))
+def run_together(fn: Worker, items: Sequence[Any], env: Dict[str, str], mps_mode: MpsMode = "off") -> List[Any]:
+    """`fn` on every item at once, in threads (the runs of one Slurm job sharing its GPU), under MPS when `mps_mode`
+    asks for it and more than one run shares a GPU."""
+    gpus = visible_gpus()
+    under_mps = cuda_mps.wanted(mps_mode, sharing=len(items) > max(len(gpus), 1))
+    with cuda_mps.daemons_for(gpus) if under_mps else contextlib.nullcontext({}) as daemons:
+        slot = [gpus[k % len(gpus)] if gpus else None for k in range(len(items))]
+        envs = [{**env, **slot_env(slot[k], daemons)} if daemons else env for k in range(len(items))]
+        if len(items) == 1:
+            return [fn(items[0], envs[0])]
+        with ThreadPoolExecutor(len(items)) as pool:
+            return list(pool.map(lambda k: fn(items[k], envs[k]), range(len(items))))
 
 
 def make_executor(config: ExecutorConfig, out: Path):

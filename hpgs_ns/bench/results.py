@@ -127,6 +127,10 @@ class Timing:
     """How many runs the sweep put on one device at a time (1: its times are its own)."""
     peak_host_rss_mb: Optional[float] = None
     peak_gpu_allocated_mb: Optional[float] = None
+    gpu: Optional[str] = None
+    """The run's CUDA_VISIBLE_DEVICES (an index, or a UUID under MPS): runs on one GPU share it."""
+    mps: Optional[bool] = None
+    """Whether the run was seen as a client of a CUDA MPS server (None: no MPS daemon where it looked)."""
 
 
 @dataclass(frozen=True)

@@ -16,6 +16,7 @@ dataparser and options. `hpgs bench --stress pose-noise exposure corrupt` also r
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import gzip
@@ -36,6 +37,7 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
 from hpgs_ns.atomic_write import atomic_path
+from hpgs_ns.bench import mps as cuda_mps
 from hpgs_ns.bench import provenance
 from hpgs_ns.bench.executors import ExecutorConfig, make_executor, runs_per_device
 from hpgs_ns.bench.names import ALL, FINAL_SET, INITIAL, REFERENCES, is_reference
@@ -539,8 +541,7 @@ def run_one(bench: Bench, job: Job, env: Optional[Dict[str, str]] = None, sweep:
     log_path.parent.mkdir(parents=True, exist_ok=True)
     with open(log_path, "w") as log:
         proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env)
-        # wait4 gives this child's own peak RSS (getrusage(RUSAGE_CHILDREN) would be the max over all runs).
-        _, status, usage = os.wait4(proc.pid, 0)
+        status, usage, under_mps = wait_watching_mps(proc.pid, env if env is not None else dict(os.environ))
     wall = time.perf_counter() - start
     if os.waitstatus_to_exitcode(status) != 0:
         tail = log_path.read_text().strip().splitlines()[-15:]
@@ -583,6 +584,8 @@ def run_one(bench: Bench, job: Job, env: Optional[Dict[str, str]] = None, sweep:
             runs_per_gpu=sweep.get("runs_per_gpu", 1),
             peak_host_rss_mb=usage.ru_maxrss / 1024,
             peak_gpu_allocated_mb=selected.get("peak_gpu_memory_mb"),
+            gpu=(env or os.environ).get("CUDA_VISIBLE_DEVICES"),
+            mps=under_mps,
         ),
         selection_work=summed_work(rounds),
         worst_views=worst_views,
@@ -594,6 +597,24 @@ def run_one(bench: Bench, job: Job, env: Optional[Dict[str, str]] = None, sweep:
                               libraries=library_versions(), settings=run_settings(bench, job)),
         final_set_of=SourceRun(job.source, job.seed, job.repeat, list(job.views)) if job.name == FINAL_SET else None,
     )
+
+
+def wait_watching_mps(pid: int, env: Dict[str, str], every: float = 2.0):
+    """Wait for child `pid`; meanwhile ask its MPS daemon, if it has one, whether the child became its client.
+    Returns (wait status, rusage, MPS observed: True, False, or None where no daemon answers)."""
+    seen: Optional[bool] = None
+    while True:
+        # wait4 gives this child's own peak RSS (getrusage(RUSAGE_CHILDREN) would be the max over all runs).
+        done, status, usage = os.wait4(pid, os.WNOHANG)
+        if done:
+            return status, usage, seen
+        if not seen:
+            now = cuda_mps.observed(pid, env)
+            seen = now if now is not None or seen is None else seen
+            if seen is None:  # no daemon where this run looks for one: nothing more to learn
+                _, status, usage = os.wait4(pid, 0)
+                return status, usage, None
+        time.sleep(every)
 
 
 def summed_work(rounds: List[dict]) -> Dict[str, float]:
@@ -658,7 +679,8 @@ def sweep_worker(item: Tuple[Bench, Job, Dict[str, Any]], env: Dict[str, str]) -
         result = run_one(bench, job, env={**os.environ, **env}, sweep=sweep)
     except Exception as exc:  # keep the worker alive for the other runs
         tail = getattr(exc, "tail", "")
-        return {"error": str(exc) + (f"\n{tail}" if tail else ""), "log": str(job.log_path(bench.out))}
+        return {"error": str(exc) + (f"\n{tail}" if tail else ""), "log": str(job.log_path(bench.out)),
+                "mps": cuda_mps.PIPE in env, "gpu": env.get("CUDA_VISIBLE_DEVICES")}
     result.to_json(job.result_path(bench.out))
     return {"result": result}
 
@@ -679,27 +701,42 @@ def run_sweep(bench: Bench, jobs: Sequence[Job], config: ExecutorConfig, what: s
     CONSOLE.print(f"hpgs bench: {len(jobs)} {what} to do ({config.executor}, {sweep['runs_per_gpu']} per device)")
     failures: List[str] = []
     errors: List[str] = []
+    todo, retried = list(jobs), False
     columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
     with Progress(*columns, console=CONSOLE) as progress:
         bar = progress.add_task("runs", total=len(jobs))
-        for done in executor.map(sweep_worker, [(bench, job, sweep) for job in jobs]):
-            job = jobs[done.index]
-            value = done.value or {"error": done.error, "log": None}
-            if "result" in value:
-                result = value["result"]
-                path = job.result_path(bench.out)
-                if not path.exists():  # the worker wrote it unless it ran on another filesystem
-                    result.to_json(path)
-                progress.console.print(
-                    f"{job.label}  PSNR {result.test.psnr:.2f}  wall {result.timing.wall_seconds:.0f} s  "
-                    f"selection {result.timing.selection_seconds:.1f} s"
-                )
-            else:
-                failures.append(f"{job.label} (log: {value['log']})")
-                errors.append(value["error"] or "")
-                last = errors[-1].strip().splitlines()
-                progress.console.print(f"[red]failed: {failures[-1]}: {last[-1] if last else ''}")
-            progress.advance(bar)
+        while todo:
+            ended_by_mps: List[Job] = []
+            # closing: the executor's MPS daemons are quit as soon as the loop ends, also on an exception
+            with contextlib.closing(executor.map(sweep_worker, [(bench, job, sweep) for job in todo])) as results:
+                for done in results:
+                    job = todo[done.index]
+                    value = done.value or {"error": done.error, "log": None}
+                    if "result" in value:
+                        result = value["result"]
+                        path = job.result_path(bench.out)
+                        if not path.exists():  # the worker wrote it unless it ran on another filesystem
+                            result.to_json(path)
+                        progress.console.print(
+                            f"{job.label}  PSNR {result.test.psnr:.2f}  wall {result.timing.wall_seconds:.0f} s  "
+                            f"selection {result.timing.selection_seconds:.1f} s"
+                        )
+                        progress.advance(bar)
+                        continue
+                    last = (value["error"] or "").strip().splitlines()
+                    if value.get("mps") and not retried and cuda_mps.looks_like_mps_fault(value["error"] or ""):
+                        ended_by_mps.append(job)
+                        progress.console.print(f"[yellow]ended under MPS: {job.label}: {last[-1] if last else ''}")
+                        continue
+                    failures.append(f"{job.label} (log: {value['log']})")
+                    errors.append(value["error"] or "")
+                    progress.console.print(f"[red]failed: {failures[-1]}: {last[-1] if last else ''}")
+                    progress.advance(bar)
+            todo, retried = ended_by_mps, True
+            if todo:
+                # A fatal fault in one MPS client ends every client of that GPU's server: run those again, once.
+                CONSOLE.print(f"hpgs bench: a GPU fault under MPS ended {len(todo)} run(s) sharing its GPU; running "
+                              "them again, once (a run that fails again is listed as failed)", soft_wrap=True)
     if failures:
         raise UserError(
             f"hpgs bench: {len(failures)} of {len(jobs)} runs failed: {'; '.join(failures)}; the others' results are "

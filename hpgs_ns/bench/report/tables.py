@@ -52,9 +52,10 @@ def timed(row: RunResult) -> bool:
     return bool(t.sweep_id and t.started_at is not None and t.wall_seconds)
 
 
-def machine(row: RunResult) -> Tuple[str, str]:
-    """(device, host of the sweep): runs of two sweeps on one machine share its GPU."""
-    return short_device(row), str(row.timing.sweep_id).rsplit("-", 1)[0]
+def machine(row: RunResult) -> Tuple[str, str, str]:
+    """(device, host of the sweep, GPU): runs of two sweeps on one GPU of a machine share it (runs that did not
+    record their GPU count as sharing every GPU of their host)."""
+    return short_device(row), str(row.timing.sweep_id).rsplit("-", 1)[0], str(row.timing.gpu or "")
 
 
 def _end(row: RunResult) -> float:
@@ -173,6 +174,14 @@ def noise_table(rows: Sequence[RunResult]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def mps_seen(span: Sequence[RunResult]) -> str:
+    """`yes` when every run of a span was seen as an MPS client, `no` when none was, `some`, or `–` (not recorded)."""
+    seen = {r.timing.mps for r in span}
+    if seen == {None}:
+        return "–"
+    return "yes" if seen == {True} else "no" if seen <= {False, None} else "some"
+
+
 def throughput_table(rows: Sequence[RunResult]) -> str:
     """Runs per hour per device against how many ran at once, over each busy span of one machine (runs whose
     times overlap, whichever sweep started them: two sweeps sharing a GPU count together); "" without
@@ -182,8 +191,9 @@ def throughput_table(rows: Sequence[RunResult]) -> str:
         return ""
     spans: List[List[RunResult]] = []
     end = 0.0  # when the last span's latest run ended
-    for r in sorted(timed_rows, key=lambda r: (machine(r), r.timing.started_at)):
-        if spans and machine(spans[-1][0]) == machine(r) and r.timing.started_at < end:
+    key = lambda r: (machine(r), str(r.timing.mps))  # noqa: E731  (runs with and without MPS are apart)
+    for r in sorted(timed_rows, key=lambda r: (key(r), r.timing.started_at)):
+        if spans and key(spans[-1][0]) == key(r) and r.timing.started_at < end:
             spans[-1].append(r)
         else:
             spans.append([r])
@@ -198,12 +208,12 @@ def throughput_table(rows: Sequence[RunResult]) -> str:
             peak = max(peak, running)
         return peak
 
-    lines = ["| device | runs at once (most) | runs | span (s) | runs per hour | mean wall per run (s) |",
-             "|---|---|---|---|---|---|"]
-    for span in sorted(spans, key=lambda g: (short_device(g[0]), at_once(g), g[0].timing.started_at)):
+    lines = ["| device | MPS | runs at once (most) | runs | span (s) | runs per hour | mean wall per run (s) |",
+             "|---|---|---|---|---|---|---|"]
+    for span in sorted(spans, key=lambda g: (short_device(g[0]), mps_seen(g), at_once(g), g[0].timing.started_at)):
         length = max(_end(r) for r in span) - min(r.timing.started_at for r in span)
         wall = sum(r.timing.wall_seconds for r in span) / len(span)
-        lines.append(f"| {short_device(span[0])} | {at_once(span)} | {len(span)} | {length:.0f} | "
+        lines.append(f"| {short_device(span[0])} | {mps_seen(span)} | {at_once(span)} | {len(span)} | {length:.0f} | "
                      f"{3600 * len(span) / length:.1f} | {wall:.0f} |")
     return "\n".join(lines) + "\n"
 
