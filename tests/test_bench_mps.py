@@ -105,7 +105,7 @@ def test_a_failed_or_interrupted_sweep_still_quits_its_daemon(fake_mps, stop):
         time.sleep(0.5)  # still running when the other one stops the sweep
 
     with pytest.raises(stop):
-        for done in LocalExecutor(ExecutorConfig(mps="on", local_workers=2)).map(fails, [0, 1]):
+        for _done in LocalExecutor(ExecutorConfig(mps="on", local_workers=2)).map(fails, [0, 1]):
             pass
     assert [c["cmd"] for c in calls(fake_mps)].count("quit") == 1
     assert calls(fake_mps)[-1]["cmd"] == "quit"
@@ -154,8 +154,9 @@ def test_a_slurm_job_starts_and_quits_its_own_daemon(fake_mps):
 
 
 def test_runs_ended_by_a_gpu_fault_under_mps_run_again_once(fake_mps, tiny_scene, tmp_path, monkeypatch, capsys):
-    from hpgs_ns.bench import runs
     from test_bench_results import make_result
+
+    from hpgs_ns.bench import runs
 
     tries: dict = {}
 

@@ -134,7 +134,7 @@ class LocalExecutor:
                     yield Done(futures[future], future.result())
 
 
-def slot_env(gpu: Optional[str], daemons: Dict[Optional[str], "cuda_mps.Daemon"]) -> Dict[str, str]:
+def slot_env(gpu: Optional[str], daemons: Dict[Optional[str], cuda_mps.Daemon]) -> Dict[str, str]:
     """A run's GPU and, under MPS, its daemon's folders (and the GPU by the name that daemon knows it by)."""
     env = {"CUDA_VISIBLE_DEVICES": gpu} if gpu is not None else {}
     daemon = daemons.get(gpu) or daemons.get(None)

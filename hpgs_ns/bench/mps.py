@@ -120,7 +120,7 @@ def start_daemon(control: str, gpu: Optional[str] = None, timeout: float = 15.0)
     deadline = time.monotonic() + timeout
     while not failed and not daemon.running():
         if time.monotonic() > deadline:
-            failed = "no control socket after %.0f s" % timeout
+            failed = f"no control socket after {timeout:.0f} s"
         time.sleep(0.1)
     if failed:
         log_tail = ""
