@@ -122,3 +122,20 @@ def test_ns_train_offers_an_entry_point_selector_on_the_command_line(toy_plugin)
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.strip().splitlines()[-1] == "LastSelectorConfig"
+
+
+def test_a_run_without_rounds_never_builds_its_selector(monkeypatch):
+    """A final-set run (`max-rounds 0`) with the default `hpgs` selector loads no preference model."""
+    from types import SimpleNamespace
+
+    from hpgs_ns.selection.config import SelectionConfig
+    from hpgs_ns.selectors import hpgs as hpgs_selector
+
+    def no_model(*_args, **_kwargs):
+        raise AssertionError("the preference model was loaded")
+
+    monkeypatch.setattr(hpgs_selector, "load_preference_model", no_model)
+    datamanager = SimpleNamespace(config=SimpleNamespace(seed=0))
+    SelectionConfig(selector="hpgs", max_rounds=0).setup(datamanager=datamanager, model=None)
+    with pytest.raises(AssertionError, match="the preference model was loaded"):
+        SelectionConfig(selector="hpgs", max_rounds=1).setup(datamanager=datamanager, model=None)

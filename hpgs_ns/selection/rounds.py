@@ -49,7 +49,8 @@ class SelectionRounds:
         self.model = model
         self.seed = int(datamanager.config.seed)
         self.schedule = Every(config.select_every, config.select_at)
-        self.selector: Selector = selector if selector is not None else config.selector_config().setup()
+        # A run without rounds (a final-set, `max-rounds 0`) never builds its selector: no preference model to load.
+        self._selector = selector if selector is not None or config.max_rounds == 0 else config.selector_config().setup()
         self.run_dir: Optional[Path] = None
         # Called with each round's record once it is logged (the viewer redraws the roles).
         self.listeners: List[Callable[[RoundRecord], None]] = []
@@ -60,6 +61,16 @@ class SelectionRounds:
         """Why selection stopped early, once it has."""
         self.psnr_without_round: Dict[int, float] = {}
         """eval-each-round: test PSNR at scheduled steps where no round ran (this process's only)."""
+
+    @property
+    def selector(self) -> Selector:
+        if self._selector is None:
+            self._selector = self.config.selector_config().setup()
+        return self._selector
+
+    @selector.setter
+    def selector(self, value: Selector) -> None:
+        self._selector = value
 
     # ---- when ------------------------------------------------------------------------------------------------
 
