@@ -2,7 +2,8 @@
 
 `ns-train hpgs`, `ns-eval` and `ns-viewer` are nerfstudio's entry points, so this package cannot wrap their
 `main`; `install_excepthook` (run when nerfstudio loads the `hpgs` method) prints an uncaught `UserError` as
-`error: <message>` and exits 1. Any other exception keeps its traceback. HPGS_TRACEBACK=1 shows it for all.
+`error: <message>` and exits 1, and so is a failure to read `--load-config` (`hpgs_ns.run_config`). Any other
+exception keeps its traceback. HPGS_TRACEBACK=1 shows it for all.
 """
 
 from __future__ import annotations
@@ -30,9 +31,20 @@ def check_option(flag: str, value: object, ok: bool, need: str, fix: str = "") -
 
 
 def print_user_errors(kind, value, traceback, fallback) -> None:
-    if issubclass(kind, UserError) and not os.environ.get("HPGS_TRACEBACK"):
+    if os.environ.get("HPGS_TRACEBACK"):
+        fallback(kind, value, traceback)
+        return
+    if issubclass(kind, UserError):
         print(f"error: {value}", file=sys.stderr)
         return
+    if issubclass(kind, Exception):
+        # ns-eval / ns-viewer: nerfstudio's eval_setup failed on --load-config; name the file's problem if it has one
+        from hpgs_ns.run_config import explain_load_config_failure
+
+        message = explain_load_config_failure(value, traceback)
+        if message:
+            print(f"error: {message}", file=sys.stderr)
+            return
     fallback(kind, value, traceback)
 
 
