@@ -260,8 +260,8 @@ def load_checkpoint_file(path: Path) -> Dict[str, Any]:
     try:
         state = torch.load(path, map_location="cpu")
     except Exception as err:  # truncated zip, unpickling error, ...: all mean the same to the user
-        raise CheckpointError(f"{path} does not load ({type(err).__name__}: {str(err).splitlines()[0][:120]}); "
-                              "it is probably truncated") from err
+        detail = f"{type(err).__name__}: {str(err).splitlines()[0][:120]}" if str(err).strip() else type(err).__name__
+        raise CheckpointError(f"{path} does not load ({detail}); it is probably truncated") from err
     if not isinstance(state, dict) or not {"step", "pipeline", "optimizers"} <= set(state):
         raise CheckpointError(f"{path} is not a nerfstudio checkpoint (no step, pipeline and optimizers)")
     step = state["step"]
