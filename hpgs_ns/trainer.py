@@ -132,11 +132,22 @@ class HpgsTrainer(Trainer):
         own = {"config.yml": yaml.dump(self.config)}  # what ns-train's `save_config` wrote
         cleanup = removed_on_failure(self.base_dir, own, stop_at=self.config.output_dir) if self.local_rank == 0 \
             else contextlib.nullcontext()
+        datamanager = self.config.pipeline.datamanager
         with cleanup:
-            super().setup(test_mode=test_mode)
+            # read before the pipeline is built: a checkpoint that holds how its splat started (0.4 on) spares the
+            # datamanager rebuilding that start (`seed-points active` triangulates the initial views) for nothing
+            self._checkpoint = self._read_checkpoint()
+            start_saved = self._checkpoint[1] is not None and saves_model_start(self._checkpoint[1])
+            try:
+                if start_saved and hasattr(datamanager, "seed_points"):
+                    datamanager.start_from_checkpoint = True  # not a field: never in config.yml
+                super().setup(test_mode=test_mode)
+            finally:
+                vars(datamanager).pop("start_from_checkpoint", None)
+                self._checkpoint = None  # the state is the pipeline's and optimizers' now
 
     def _load_checkpoint(self) -> None:
-        path, loaded = self._read_checkpoint()
+        path, loaded = getattr(self, "_checkpoint", None) or self._read_checkpoint()
         if loaded is None:
             CONSOLE.print("No Nerfstudio checkpoint to load, so training from scratch.")
             return
@@ -241,6 +252,12 @@ class HpgsTrainer(Trainer):
             write_final_eval(self, Path(self.config.final_eval_json), worst_views=self.config.final_eval_worst_views)
             set_random_state(rng)  # the final checkpoint resumes as if no evaluation had run
         super()._after_train()
+
+
+def saves_model_start(state: Dict[str, Any]) -> bool:
+    """Whether a checkpoint's model state says how its splat started (`random_start`, hpgs-ns 0.4 on)."""
+    extra = state.get("pipeline", {}).get("_model._extra_state")
+    return isinstance(extra, dict) and "random_start" in extra
 
 
 class CheckpointError(UserError, RuntimeError):
