@@ -477,3 +477,15 @@ def test_a_bench_result_with_wrong_typed_fields_is_one_line(tmp_path, change, sa
     with pytest.raises(ResultError) as info:
         RunResult.from_json(path)
     assert one_line(info.value).startswith(f"{path}: ") and says in str(info.value)
+
+
+def test_hpgs_label_on_a_latin1_csv_is_one_line(pairs_folder):
+    from hpgs_ns.preference.label_server import LabelBook
+    from hpgs_ns.preference.pairs import PairsError
+
+    csv_path = pairs_folder / "pairs.csv"
+    csv_path.write_bytes(PAIRS_CASES[0][1])
+    with pytest.raises(PairsError) as info:
+        LabelBook(csv_path)
+    assert one_line(info.value).startswith(f"{csv_path}: not UTF-8 text (byte 0xe9")
+    assert csv_path.read_bytes() == PAIRS_CASES[0][1]  # left as it was
