@@ -149,8 +149,9 @@ class MipNerf360DataParser(ColmapDataParser):
             fix = downscaled_fix(path, camera, model)
             if not fix.startswith("delete"):  # the source photo is the wrong size, not the rounding
                 raise SceneDataError(f"{path} is {size[0]}x{size[1]} but its camera says {camera[0]}x{camera[1]}; {fix}")
-        else:
-            fix = f"replace it with the {camera[0]}x{camera[1]} photo its camera was made from, or remove it from {model}"
+        else:  # a full-resolution photo: no rounding is involved
+            raise SceneDataError(f"{path} is {size[0]}x{size[1]} but its camera says {camera[0]}x{camera[1]}; replace it "
+                                 f"with the {camera[0]}x{camera[1]} photo its camera was made from, or remove it from {model}")
         raise SceneDataError(
             f"{path} is {size[0]}x{size[1]} but its camera says {camera[0]}x{camera[1]} ({path.parent} was not made with "
             f"--downscale-rounding-mode {self.config.downscale_rounding_mode}); {fix}"

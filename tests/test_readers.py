@@ -489,3 +489,16 @@ def test_hpgs_label_on_a_latin1_csv_is_one_line(pairs_folder):
         LabelBook(csv_path)
     assert one_line(info.value).startswith(f"{csv_path}: not UTF-8 text (byte 0xe9")
     assert csv_path.read_bytes() == PAIRS_CASES[0][1]  # left as it was
+
+
+def test_a_wrong_sized_first_photo_at_full_resolution_names_no_rounding(colmap_scene, tmp_path):
+    import shutil
+
+    scene = Path(shutil.copytree(colmap_scene, tmp_path / "scene"))
+    photo = scene / "images" / "0001.png"  # the first training view: checked when the split is parsed
+    with Image.open(photo) as image:
+        image.resize((20, 14)).save(photo)
+    with pytest.raises(SceneDataError) as info:
+        MipNerf360DataParserConfig(data=scene, downscale_factor=1).setup().get_dataparser_outputs("train")
+    assert one_line(info.value) == (f"{photo} is 20x14 but its camera says 32x24; replace it with the 32x24 photo its "
+                                    f"camera was made from, or remove it from the COLMAP model ({scene / 'sparse' / '0'})")
