@@ -363,6 +363,8 @@ def test_ns_eval_and_ns_viewer_on_a_broken_config_yml_print_one_line(tmp_path, m
     installs re-reads --load-config and prints what is wrong with it."""
     from nerfstudio.utils.eval_utils import eval_setup
 
+    import hpgs_ns.method_config  # noqa: F401 (what nerfstudio imports: it installs the hook and its explainer)
+
     config = tmp_path / "config.yml"
     config.write_text(make(config_text))
     monkeypatch.setattr(sys, "argv", ["ns-eval", "--load-config", str(config), "--output-path", str(tmp_path / "o.json")])
