@@ -234,8 +234,12 @@ class ActiveDatamanager(FullImageDatamanager):
         elif self.seed_points_mode == "random":
             self._drop_seed_points()
         elif self.seed_points_mode == "active" and test_mode == "val":  # training; ns-eval/ns-viewer ("test") load the checkpoint's
-            self._triangulate_seed_points()
-        if self.config.random_points == "views" and test_mode == "val" and "points3D_xyz" not in self.train_dataparser_outputs.metadata:
+            if getattr(self.config, "start_from_checkpoint", False):
+                self._drop_seed_points()  # a resume: the checkpoint replaces the splat and says how it started
+            else:
+                self._triangulate_seed_points()
+        if self.config.random_points == "views" and test_mode == "val" and "points3D_xyz" not in self.train_dataparser_outputs.metadata \
+                and not getattr(self.config, "start_from_checkpoint", False):
             self._view_seed_points()
         self.train_unseen_cameras = self.sample_train_cameras()
 

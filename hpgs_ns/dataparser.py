@@ -44,7 +44,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from PIL import Image
 
 from hpgs_ns.errors import UserError, check_option
-from hpgs_ns.scenes.colmap_model import model_file
+from hpgs_ns.scenes.colmap_model import ColmapModelError, check_model, model_file
 
 MAX_AUTO_RESOLUTION = 1600  # nerfstudio's rule for the automatic downscale factor
 # nerfstudio's --downscale-rounding-mode (colmap_dataparser.calculate_scaled_size)
@@ -109,10 +109,19 @@ class MipNerf360DataParser(ColmapDataParser):
     _all_image_filenames: Optional[List[Path]] = None  # every frame of the model, file-name order, before dropping
     _kept: Optional[List[int]] = None  # positions in that list of the frames kept
     _unreadable: Optional[Dict[str, str]] = None  # image path -> problem, checked once for all splits
+    _model_checked: bool = False  # the COLMAP model's files read without error (check_model)
 
     def _generate_dataparser_outputs(self, split: str = "train", **kwargs):
         self._check_scene_folder()
-        outputs = super()._generate_dataparser_outputs(split, **kwargs)
+        try:
+            outputs = super()._generate_dataparser_outputs(split, **kwargs)
+        except (KeyError, IndexError, TypeError, NotImplementedError, AssertionError) as err:
+            # the model's files read (checked above) but nerfstudio cannot use what they say (a camera model it
+            # does not support, an image id no camera has, ...); HPGS_TRACEBACK=1 shows where
+            model = Path(self.config.data) / self.config.colmap_path
+            raise SceneDataError(f"the COLMAP model {model} cannot be used ({type(err).__name__}: "
+                                 f"{str(err).splitlines()[0][:120] if str(err) else 'no detail'}); re-run COLMAP "
+                                 "(pinhole or radial cameras)") from err
         self._check_image_size(outputs)
         return outputs
 
@@ -133,8 +142,16 @@ class MipNerf360DataParser(ColmapDataParser):
             with Image.open(full) as image:
                 width, height = image.size
             fits = [mode for mode, fn in ROUNDING.items() if (fn(width / factor), fn(height / factor)) == size]
-        fix = (f"pass mipnerf360 --downscale-rounding-mode {fits[0]}" if fits
-               else f"delete {path.parent} to have it rewritten from {full.parent}")
+        model = f"the COLMAP model ({Path(self.config.data) / self.config.colmap_path})"
+        if fits:
+            fix = f"pass mipnerf360 --downscale-rounding-mode {fits[0]}"
+        elif _RESOLUTION_FOLDER.match(path.parent.name):
+            fix = downscaled_fix(path, camera, model)
+            if not fix.startswith("delete"):  # the source photo is the wrong size, not the rounding
+                raise SceneDataError(f"{path} is {size[0]}x{size[1]} but its camera says {camera[0]}x{camera[1]}; {fix}")
+        else:  # a full-resolution photo: no rounding is involved
+            raise SceneDataError(f"{path} is {size[0]}x{size[1]} but its camera says {camera[0]}x{camera[1]}; replace it "
+                                 f"with the {camera[0]}x{camera[1]} photo its camera was made from, or remove it from {model}")
         raise SceneDataError(
             f"{path} is {size[0]}x{size[1]} but its camera says {camera[0]}x{camera[1]} ({path.parent} was not made with "
             f"--downscale-rounding-mode {self.config.downscale_rounding_mode}); {fix}"
@@ -155,6 +172,12 @@ class MipNerf360DataParser(ColmapDataParser):
             )
         if model_file(model, "images") is None:
             raise SceneDataError(f"no camera poses: {model}/images.bin (or .txt) is missing; run COLMAP first")
+        if not self._model_checked:  # once for both splits; nerfstudio's readers raise struct.error on a truncated file
+            try:
+                check_model(model, points=self.config.load_3D_points)
+            except ColmapModelError as err:
+                raise SceneDataError(str(err)) from err
+            self._model_checked = True
         full = data / self.config.images_path
         if not self._image_folder().is_dir() and not full.is_dir():  # images_N is written from images/
             raise SceneDataError(f"image folder {full} does not exist; set --images-path")
@@ -224,7 +247,8 @@ class MipNerf360DataParser(ColmapDataParser):
         if self._downscale_factor is None:
             factor = self.config.downscale_factor
             if factor is None:
-                width, height = Image.open(next(iter(image_filenames))).size
+                with Image.open(next(iter(image_filenames))) as image:
+                    width, height = image.size
                 factor = 1
                 while max(width, height) / factor > MAX_AUTO_RESOLUTION:
                     factor *= 2
@@ -256,6 +280,9 @@ def _make_downscaled_folder(source: Path, image_filenames: List[Path], factor: i
             out = tmp / rel
             out.parent.mkdir(parents=True, exist_ok=True)
             resized.save(out, quality=95)
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o777 & ~umask)  # mkdtemp makes 0700; the folder is the scene's, like images/
         if target.exists():
             shutil.rmtree(target)
         tmp.rename(target)
@@ -284,19 +311,35 @@ def check_image_sizes(datasets, parser_config) -> None:
     if not bad:
         return
     path, (width, height), (cam_w, cam_h) = bad[0]
-    if _RESOLUTION_FOLDER.match(path.parent.name):
-        fix = f"delete {path.parent} to have it rewritten from {path.parent.parent / 'images'}"
+    if isinstance(parser_config, NerfstudioDataParserConfig):
+        data = Path(parser_config.data)
+        model = str(data if data.suffix == ".json" else data / "transforms.json")
+    elif isinstance(parser_config, ColmapDataParserConfig):
+        model = f"the COLMAP model ({Path(parser_config.data) / parser_config.colmap_path})"
     else:
-        if isinstance(parser_config, NerfstudioDataParserConfig):
-            data = Path(parser_config.data)
-            model = str(data if data.suffix == ".json" else data / "transforms.json")
-        elif isinstance(parser_config, ColmapDataParserConfig):
-            model = f"the COLMAP model ({Path(parser_config.data) / parser_config.colmap_path})"
-        else:
-            model = "the dataparser's cameras"
+        model = "the dataparser's cameras"
+    if _RESOLUTION_FOLDER.match(path.parent.name):
+        fix = downscaled_fix(path, (cam_w, cam_h), model)
+    else:
         fix = f"replace it with the {cam_w}x{cam_h} photo its camera was made from, or remove it from {model}"
     more = f" ({len(bad) - 1} more photos differ from their cameras too)" if len(bad) > 1 else ""
     raise SceneDataError(f"{path} is {width}x{height} but its camera says {cam_w}x{cam_h}{more}; {fix}")
+
+
+def downscaled_fix(path: Path, camera: Tuple[int, int], model: str) -> str:
+    """The fix for a photo in `images_N/` that is not its camera's size: rewriting `images_N` helps only when the
+    full-resolution photo it was written from is the right size; otherwise that photo is named."""
+    factor = int(path.parent.name.rpartition("_")[2])
+    source = path.parent.parent / "images" / path.name
+    try:
+        with Image.open(source) as image:
+            width, height = image.size
+    except (OSError, ValueError):
+        return f"delete {path.parent} to have it rewritten from {source.parent}"
+    if any((fn(width / factor), fn(height / factor)) == tuple(camera) for fn in ROUNDING.values()):
+        return f"delete {path.parent} to have it rewritten from {source.parent}"
+    return (f"it is written from {source}, which is {width}x{height}, not {factor}x the camera's size: replace {source} "
+            f"with the photo its camera was made from (then delete {path.parent}), or remove it from {model}")
 
 
 def image_problem(path: Path) -> Optional[str]:
@@ -360,12 +403,20 @@ class HpgsNerfstudio(Nerfstudio):
         load_points, self.config.load_3D_points = self.config.load_3D_points, False  # the stock loader needs open3d
         try:
             outputs = super()._generate_dataparser_outputs(split)
+            ply = None
+            if load_points:
+                meta = json.loads(meta_path.read_text())
+                ply = meta_path.parent / meta.get("ply_file_path", "sparse_pc.ply")
+        except UserError:
+            raise
+        except (KeyError, IndexError, TypeError, ValueError, AttributeError, AssertionError) as err:
+            # a field of the wrong type or shape (a matrix that is not 4x4, a size that is not a number, ...)
+            detail = str(err).splitlines()[0][:120] if str(err) else "no detail"
+            raise SceneDataError(f"{meta_path} has a field nerfstudio cannot use ({type(err).__name__}: {detail}); "
+                                 "restore it from the capture or re-run ns-process-data") from err
         finally:
             self.config.load_3D_points = load_points
-        if load_points:
-            meta = json.loads(meta_path.read_text())
-            root = meta_path.parent
-            ply = root / meta["ply_file_path"] if "ply_file_path" in meta else root / "sparse_pc.ply"
+        if ply is not None:
             points = read_ply_points(ply) if ply.is_file() else None
             if points is not None:  # none: the datamanager says what the splat starts from (`seed-points`)
                 xyz, rgb = points
@@ -383,7 +434,8 @@ def read_transforms_frames(meta_path: Path) -> List[dict]:
         raise SceneDataError(f"{meta_path} is not readable JSON ({err}); restore it from the capture or re-run "
                              "ns-process-data") from None
     frames = meta.get("frames") if isinstance(meta, dict) else None
-    if not isinstance(frames, list) or not frames or not all(isinstance(f, dict) and "file_path" in f for f in frames):
+    if not isinstance(frames, list) or not frames or not all(isinstance(f, dict) and isinstance(f.get("file_path"), str)
+                                                             for f in frames):
         raise SceneDataError(f"{meta_path} has no \"frames\" list of {{\"file_path\": ...}} entries; restore it from the "
                              "capture or re-run ns-process-data")
     return frames

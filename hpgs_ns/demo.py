@@ -81,7 +81,9 @@ class Demo:
         minutes = (time.perf_counter() - start) / 60
         config = latest_config(self.out / "runs" / "hpgs" / run_name)
         metrics = json.loads((config.parent / "final_eval.json").read_text())["results"]
-        selected = json.loads((config.parent / "selected_views.json").read_text())
+        from hpgs_ns.selection.records import read_round_log
+
+        selected = read_round_log(config.parent / "selected_views.json")
         added = sum(len(r["chosen"]) for r in selected["rounds"])
         print(
             f"test PSNR {metrics['psnr']:.2f} dB  SSIM {metrics['ssim']:.3f}  LPIPS {metrics['lpips']:.3f}  "

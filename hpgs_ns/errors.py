@@ -2,13 +2,15 @@
 
 `ns-train hpgs`, `ns-eval` and `ns-viewer` are nerfstudio's entry points, so this package cannot wrap their
 `main`; `install_excepthook` (run when nerfstudio loads the `hpgs` method) prints an uncaught `UserError` as
-`error: <message>` and exits 1. Any other exception keeps its traceback. HPGS_TRACEBACK=1 shows it for all.
+`error: <message>` and exits 1, and so is another package's exception that a registered explainer names the cause of
+(a damaged `--load-config`: `hpgs_ns.run_config`). Any other exception keeps its traceback. HPGS_TRACEBACK=1 shows it for all.
 """
 
 from __future__ import annotations
 
 import os
 import sys
+from typing import Any, Callable, List, Optional
 
 
 class UserError(Exception):
@@ -30,14 +32,31 @@ def check_option(flag: str, value: object, ok: bool, need: str, fix: str = "") -
 
 
 def print_user_errors(kind, value, traceback, fallback) -> None:
-    if issubclass(kind, UserError) and not os.environ.get("HPGS_TRACEBACK"):
+    if os.environ.get("HPGS_TRACEBACK"):
+        fallback(kind, value, traceback)
+        return
+    if issubclass(kind, UserError):
         print(f"error: {value}", file=sys.stderr)
         return
+    if issubclass(kind, Exception):
+        for explain in EXPLAINERS:  # e.g. ns-eval / ns-viewer failing in nerfstudio on a damaged --load-config
+            message = explain(value, traceback)
+            if message:
+                print(f"error: {message}", file=sys.stderr)
+                return
     fallback(kind, value, traceback)
 
 
-def install_excepthook() -> None:
-    """Idempotent; chains to the hook installed before (nerfstudio's or Python's)."""
+EXPLAINERS: List[Callable[[BaseException, Any], Optional[str]]] = []
+"""Functions that name, in one line, the fixable cause of an exception raised in another package's code (None when
+they find none): `hpgs_ns.run_config.explain_load_config_failure`, registered by `install_excepthook`'s caller."""
+
+
+def install_excepthook(explain: Optional[Callable[[BaseException, Any], Optional[str]]] = None) -> None:
+    """Idempotent; chains to the hook installed before (nerfstudio's or Python's). `explain`: added to
+    `EXPLAINERS` (once)."""
+    if explain is not None and explain not in EXPLAINERS:
+        EXPLAINERS.append(explain)
     if getattr(sys.excepthook, "hpgs_user_errors", False):
         return
     previous = sys.excepthook

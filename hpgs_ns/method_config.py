@@ -16,14 +16,16 @@ from hpgs_ns.datamanager import ActiveDatamanagerConfig
 from hpgs_ns.errors import install_excepthook
 from hpgs_ns.model import HpgsSplatfactoModelConfig
 from hpgs_ns.pipeline import HpgsPipelineConfig
+from hpgs_ns.run_config import explain_load_config_failure
 from hpgs_ns.schedules import FloatExponentialDecaySchedulerConfig
 from hpgs_ns.selection.config import SelectionConfig
 from hpgs_ns.trainer import HpgsTrainerConfig
 
 TOTAL_STEPS = 15000
 
-# nerfstudio imports this module for ns-train/ns-eval/ns-viewer: our fixable errors print as one line there.
-install_excepthook()
+# nerfstudio imports this module for ns-train/ns-eval/ns-viewer: our fixable errors print as one line there, and
+# so does nerfstudio's failure to read a damaged --load-config.
+install_excepthook(explain=explain_load_config_failure)
 
 
 def hpgs_trainer_config(max_steps: int = TOTAL_STEPS) -> HpgsTrainerConfig:

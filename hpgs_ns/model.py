@@ -392,7 +392,9 @@ class HpgsSplatfactoModel(SplatfactoModel):
     def get_extra_state(self) -> Dict[str, Any]:
         # Plain ints and tensors only, so checkpoints load with torch.load(weights_only=True).
         state: Dict[str, Any] = {"step_offset": int(self.step_offset), "refine_until": int(self.refine_until),
-                                 "clock_scale": float(self.clock_scale)}
+                                 "clock_scale": float(self.clock_scale),
+                                 # how the splat started: a resume does not rebuild the start (seed-points active)
+                                 "random_start": bool(self.random_start), "view_points_start": bool(self.view_points_start)}
         if self.keep_initial_in_checkpoint:
             state["initial_gaussians"] = dict(self.initial_gaussians)
         # The densification strategy's running statistics (gradient sums, visibility counts since the last
@@ -402,6 +404,9 @@ class HpgsSplatfactoModel(SplatfactoModel):
 
     def set_extra_state(self, state: Dict[str, Any]) -> None:
         self.step_offset = int(state.get("step_offset", 0))
+        if "random_start" in state:
+            self.random_start = bool(state["random_start"])
+            self.view_points_start = bool(state.get("view_points_start", False))
         if float(state.get("clock_scale", 1.0)) != 1.0:
             self.set_clock_scale(float(state["clock_scale"]))
         if state.get("refine_until"):

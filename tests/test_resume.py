@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import shutil
+import warnings
 from pathlib import Path
 
 import pytest
@@ -130,3 +131,41 @@ def test_a_resume_that_changes_the_selection_is_refused(runs, tmp_path, option, 
     cfg.load_dir = runs["copy"] / "nerfstudio_models"
     with pytest.raises(CheckpointError, match=named):
         cfg.setup(local_rank=0, world_size=1).setup()
+
+
+def test_a_resume_that_extends_a_run_follows_the_longer_schedule_and_counts_its_rounds(tiny_scene, tmp_path, capsys):
+    """`--load-dir` of a finished 20-step run with `--max-num-iterations 40`: the checkpoint's schedules (sized to
+    20 steps) are re-sized to 40, so from the loaded step on every learning rate is the uninterrupted 40-step run's
+    (not the 20-step schedule's floor), and the start-up line counts the round run before the checkpoint."""
+    from conftest import run_training_seeing
+
+    def config(steps: int, out: Path):
+        return short_config(tiny_scene, out, steps=steps, every=10, rounds=7, selector="random")
+
+    rates = lambda trainer, step: {k: o.param_groups[0]["lr"] for k, o in trainer.optimizers.optimizers.items()}  # noqa: E731
+    torch.manual_seed(0)
+    whole, whole_rates = run_training_seeing(config(40, tmp_path / "whole"), rates)
+    torch.manual_seed(0)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        first = run_training(config(20, tmp_path / "first"))
+    # the warnings the plugin's own training code set off on a CPU are gone (nerfstudio's GradScaler, its writer's
+    # float() of a loss that requires grad): fixed where they come from, nothing filtered
+    said = [str(w.message) for w in caught]
+    assert not [m for m in said if "GradScaler" in m or "requires_grad=True to a scalar" in m], said
+    capsys.readouterr()
+    cfg = config(40, tmp_path / "longer")
+    cfg.load_dir = Path(first.base_dir) / "nerfstudio_models"
+    longer, longer_rates = run_training_seeing(cfg, rates)
+    out = " ".join(capsys.readouterr().out.split())
+    assert min(longer_rates) == 20 and sorted(longer_rates) == list(range(20, 40))
+    for step in range(20, 40):
+        assert longer_rates[step] == pytest.approx(whole_rates[step], rel=1e-9), step
+    floor = whole.config.optimizers["means"]["scheduler"].lr_final
+    assert longer_rates[30]["means"] > 3 * floor  # the 20-step schedule would hold it at its floor
+    assert "the learning-rate schedules now end at step 40 (the checkpoint's ended at step 20)" in out
+    assert "only 3 of 7 selection rounds will run (1 before the checkpoint, 2 from step 20)" in out
+    assert [h.step for h in longer.pipeline.datamanager.history] == [h.step for h in whole.pipeline.datamanager.history] == [10, 20, 30]
+    # the re-sized schedule is saved: a resume of the extended run keeps it
+    state = torch.load(sorted((Path(longer.base_dir) / "nerfstudio_models").glob("*.ckpt"))[-1], map_location="cpu")
+    assert state["schedulers"]["means"]["lr_lambdas"][0]["max_steps"] == 40

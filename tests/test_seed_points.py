@@ -70,8 +70,12 @@ def test_active_seeds_from_the_initial_views_only_and_a_round_adds_gaussians(jui
     resume = juicebox_config(juicebox, tmp_path / "resumed", steps=3, select_at=(1,), rounds=1, initial=8, selector="random",
                              seed_points="active")
     resume.load_dir = copy / "nerfstudio_models"
+    calls = len(spy)
     resumed = setup_trainer(resume)
     assert resumed.pipeline.model.num_points == saved
+    # the checkpoint replaces the start and says how the splat started: the initial views are not triangulated again
+    assert len(spy) == calls and resumed.pipeline.model.random_start is trainer.pipeline.model.random_start is False
+    assert "start_from_checkpoint" not in vars(resume.pipeline.datamanager)  # never written to config.yml
     assert resumed.pipeline.datamanager.history[0].after_add["seed_points_added"] == added
     # ns-eval / ns-viewer load the checkpoint's splat: nothing is triangulated again
     from nerfstudio.utils.eval_utils import eval_setup

@@ -87,7 +87,11 @@ class Metrics:
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> Metrics:
-        return cls(**_pick(cls, data))
+        picked = _pick(cls, data)
+        wrong = [k for k, v in picked.items() if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float)))]
+        if wrong:
+            raise TypeError(f"test metric {wrong[0]} is {picked[wrong[0]]!r}, not a number")
+        return cls(**picked)
 
 
 @dataclass(frozen=True)
@@ -261,11 +265,23 @@ class RunResult:
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> RunResult:
+        if not isinstance(data, Mapping):
+            raise ResultError(f"not a benchmark result (a JSON {type(data).__name__}, not an object)")
         version = data.get("version", 1)
-        if version == 1:
-            data = _from_v1(data)
-        elif version != VERSION:
-            raise ResultError(f"result version {version} is newer than this hpgs_ns reads ({VERSION}); upgrade hpgs_ns")
+        try:
+            if version == 1:
+                data = _from_v1(data)
+            elif version != VERSION:
+                newer = isinstance(version, int) and not isinstance(version, bool) and version > VERSION
+                raise ResultError(f"result version {version!r} is {'newer than' if newer else 'not one'} this hpgs_ns "
+                                  f"reads ({VERSION}); {'upgrade hpgs_ns' if newer else 're-run it'}")
+        except ResultError:
+            raise
+        except (KeyError, TypeError, AttributeError, ValueError) as err:
+            raise ResultError(f"not a benchmark result ({type(err).__name__}: {err})") from None
+        wrong = [k for k, kind in RESULT_TYPES.items() if k in data and not isinstance(data[k], kind)]
+        if wrong:
+            raise ResultError(f"not a benchmark result ({wrong[0]} is {data[wrong[0]]!r})")
         try:
             return cls(
                 **{k: data[k] for k in ("scene", "protocol", "selector", "seed")},
@@ -280,7 +296,7 @@ class RunResult:
                 provenance=Provenance(**_pick(Provenance, data.get("provenance", {}))),
                 final_set_of=SourceRun(**_pick(SourceRun, data["final_set_of"])) if data.get("final_set_of") else None,
             )
-        except (KeyError, TypeError) as err:
+        except (KeyError, TypeError, AttributeError, ValueError) as err:
             raise ResultError(f"not a benchmark result ({type(err).__name__}: {err})") from None
 
     @classmethod
@@ -304,6 +320,12 @@ def start_label(mode: Optional[str], random_start: bool) -> Optional[str]:
     if not random_start or mode == "random":
         return mode
     return "random" if mode == "colmap" else f"{mode} (random at step 0)"
+
+
+# Fields whose type the report relies on (bool is an int: a seed of `true` is refused by the check on str too).
+RESULT_TYPES = {"scene": str, "protocol": str, "selector": str, "seed": int, "test": Mapping, "timing": Mapping,
+                "provenance": Mapping, "psnr_per_round": list, "test_views": list, "initial_views": list,
+                "chosen_views": list}
 
 
 def _from_v1(flat: Mapping[str, Any]) -> Dict[str, Any]:

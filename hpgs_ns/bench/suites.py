@@ -84,6 +84,34 @@ def shipped_suites() -> List[str]:
     return sorted(p.stem for p in SUITES.glob("*.toml"))
 
 
+# The keys of a [[scene]] table and the TOML types each takes.
+SCENE_KEYS = {"name": (str,), "path": (str,), "dataparser": (str,), "options": (dict,), "smoke": (bool,)}
+TOML_TYPE = {str: "a string", dict: "a table", bool: "true or false"}
+
+
+def check_suite_shape(path: Path, spec: dict) -> List[dict]:
+    """The suite's [[scene]] tables, each checked to hold only known keys of the right TOML type (SuiteError naming
+    the first that does not: `scene = 5`, a `[scene]` table, `options = "x"`)."""
+    entries = spec.get("scene", [])
+    if not isinstance(entries, list) or not all(isinstance(e, dict) for e in entries):
+        raise SuiteError(f"{path}: `scene` must be a list of [[scene]] tables (each with name and path), not "
+                         f"{type(entries).__name__ if not isinstance(entries, dict) else 'one [scene] table'}; "
+                         "write each scene as [[scene]]")
+    for k, entry in enumerate(entries):
+        for key, value in entry.items():
+            kinds = SCENE_KEYS.get(key)
+            if kinds is None:
+                raise SuiteError(f"{path}: scene {k + 1} has an unknown key {key!r}; the keys are {', '.join(SCENE_KEYS)}")
+            if not isinstance(value, kinds) or (kinds == (str,) and not value.strip()):
+                raise SuiteError(f"{path}: scene {k + 1}: {key} must be {TOML_TYPE[kinds[0]]}"
+                                 f"{' (not empty)' if kinds == (str,) else ''}, not {value!r}; fix the file")
+        for option, value in entry.get("options", {}).items():
+            if isinstance(value, (dict, list)):
+                raise SuiteError(f"{path}: scene {k + 1}: option {option!r} must be a string, number or true/false, not "
+                                 f"{value!r}; fix the file")
+    return entries
+
+
 def load_suite(suite: str, data_root: Optional[Path] = None, only: Sequence[str] = ()) -> List[Scene]:
     """The scenes of a suite (those named in `only`, if any), their paths resolved against `data_root` (checked to
     exist, synthetic ones aside)."""
@@ -91,11 +119,14 @@ def load_suite(suite: str, data_root: Optional[Path] = None, only: Sequence[str]
 
     path = suite_file(suite)
     try:
-        spec = tomllib.loads(path.read_text())
+        spec = tomllib.loads(path.read_text(encoding="utf-8"))
+    except UnicodeDecodeError as err:
+        raise SuiteError(f"{path}: not UTF-8 text (byte {err.object[err.start]:#04x} at offset {err.start}); "
+                         "save it as UTF-8") from None
     except tomllib.TOMLDecodeError as err:
         raise SuiteError(f"{path}: not valid TOML ({err}); fix the file") from None
     root = Path(data_root) if data_root is not None else Path(".")
-    entries = spec.get("scene", [])
+    entries = check_suite_shape(path, spec)
     unknown = sorted(set(only) - {str(e.get("name")) for e in entries})
     if unknown:
         raise SuiteError(f"{path}: no scene called {unknown[0]!r}; its scenes: {', '.join(str(e.get('name')) for e in entries)}")

@@ -47,7 +47,7 @@ from typing_extensions import Annotated
 
 from hpgs_ns.atomic_write import write_csv_atomic
 from hpgs_ns.errors import UserError
-from hpgs_ns.preference.pairs import COLUMNS, SKIPPED, PairsError, pairs_reader, parse_flag
+from hpgs_ns.preference.pairs import COLUMNS, SKIPPED, PairsError, csv_errors, pairs_reader, parse_flag
 from hpgs_ns.preference.recipe import CheckpointError  # not .model: `hpgs label --help` needs no torch
 
 PAGE = Path(__file__).resolve().parent / "static" / "label.html"
@@ -77,7 +77,7 @@ class LabelBook:
         if not self.path.is_file():
             raise PairsError(f"{self.path}: pairs CSV not found; create it with `hpgs collect` "
                              f"(columns {','.join(COLUMNS)})")
-        with open(self.path, newline="", encoding="utf-8-sig") as f:
+        with csv_errors(self.path), open(self.path, newline="", encoding="utf-8-sig") as f:
             reader = pairs_reader(f, self.path)
             header = list(reader.fieldnames)
             self.rows: List[Dict[str, str]] = [dict(r) for r in reader]
@@ -163,7 +163,7 @@ def _read_renders(directory: Path) -> Dict[str, Dict[str, float]]:
     path = directory / "renders.csv"
     if not path.is_file():
         raise PairsError(f"{path}: not found; --oracle needs renders.csv (image, psnr, ssim, lpips) from `hpgs collect`")
-    with open(path, newline="", encoding="utf-8-sig") as f:
+    with csv_errors(path), open(path, newline="", encoding="utf-8-sig") as f:
         reader = csv.DictReader(f)
         need = ["image", "psnr", "ssim", "lpips"]
         missing = [c for c in need if c not in (reader.fieldnames or [])]

@@ -329,9 +329,16 @@ class PreferenceModel(nn.Module):
         if transform not in FEATURE_TRANSFORMS:
             raise CheckpointError(f"{path}: unknown feature transform {transform!r}; expected one of "
                                   f"{', '.join(FEATURE_TRANSFORMS)} (made by a newer hpgs_ns? upgrade it)")
-        model = cls(name, pretrained=bool(ckpt["pretrained"]) and trained_backbone is None,
-                    input_size=int(ckpt["input_recipe"]["resize_short_side"]), feature_transform=transform)
-        model.pretrained = bool(ckpt["pretrained"])
+        try:
+            size = ckpt["input_recipe"]["resize_short_side"]
+            if isinstance(size, bool) or not isinstance(size, int) or size < 1 or not isinstance(ckpt["pretrained"], bool):
+                raise TypeError(f"input size {size!r}, pretrained {ckpt['pretrained']!r}")
+        except (KeyError, TypeError) as err:
+            raise CheckpointError(f"{path}: not an hpgs preference-model checkpoint (its recipe: {type(err).__name__}: "
+                                  f"{err}); retrain with `hpgs train-pref`") from None
+        model = cls(name, pretrained=ckpt["pretrained"] and trained_backbone is None, input_size=size,
+                    feature_transform=transform)
+        model.pretrained = ckpt["pretrained"]
         if ckpt.get("feature_dim") != model.feature_dim:
             raise CheckpointError(f"{path}: feature size {ckpt.get('feature_dim')} does not match the {name} "
                                   f"backbone's {model.feature_dim}; retrain with `hpgs train-pref`")
@@ -341,10 +348,14 @@ class PreferenceModel(nn.Module):
             model.feature_std.copy_(ckpt["feature_std"])
             if trained_backbone is not None:
                 model.backbone.load_state_dict(trained_backbone)
-        except (RuntimeError, KeyError) as err:
-            first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        except (RuntimeError, KeyError, TypeError, AttributeError, ValueError) as err:
+            first = str(err).strip().splitlines()[0][:160] if str(err).strip() else type(err).__name__
             raise CheckpointError(f"{path}: weights do not fit the {name} model ({first}); "
                                   "retrain with `hpgs train-pref`") from None
-        model.meta = dict(ckpt.get("meta") or {})
+        meta = ckpt.get("meta") or {}
+        if not isinstance(meta, dict):
+            raise CheckpointError(f"{path}: not an hpgs preference-model checkpoint (meta is a {type(meta).__name__}); "
+                                  "retrain with `hpgs train-pref`")
+        model.meta = dict(meta)
         model.requires_grad_(False)
         return model.eval().to(device)

@@ -24,7 +24,15 @@ from typing_extensions import Annotated
 
 from hpgs_ns.errors import UserError
 from hpgs_ns.preference.evaluate import evaluate_pairs, index_pairs, raw_features_of
-from hpgs_ns.preference.pairs import Pair, PairsError, image_disjoint_split, images_of, load_image, read_usable_pairs
+from hpgs_ns.preference.pairs import (
+    Pair,
+    PairsError,
+    check_image,
+    image_disjoint_split,
+    images_of,
+    load_image,
+    read_usable_pairs,
+)
 from hpgs_ns.preference.recipe import BackboneName, FeatureTransform
 
 if TYPE_CHECKING:  # torch and the model are imported where used: `hpgs train-pref --help` imports this module
@@ -252,9 +260,16 @@ class TrainPref:
         if len(pairs) < 2:
             raise PairsError(f"{', '.join(map(str, self.pairs))}: {len(pairs)} labelled pairs; label more with "
                              "`hpgs label DIR` before training")
+        for image in images_of(pairs):  # every labelled image, held out or not, before any training
+            check_image(image)
         train, test = image_disjoint_split(pairs, self.test_fraction, self.seed)
         if not train:
             raise PairsError("no training pairs left after holding out test images; lower --test-fraction")
+        if self.test_fraction > 0 and not test:
+            raise PairsError(f"{', '.join(map(str, self.pairs))}: no held-out pairs at --test-fraction {self.test_fraction:g} "
+                             f"({len(pairs)} pairs over {len(images_of(pairs))} images: too few for a split with both images "
+                             "of a pair held out); label more pairs, or pass --test-fraction 0 to train on all of them "
+                             "without a held-out accuracy")
         images = images_of(train)
         print(f"train-pref: {len(train)} training pairs over {len(images)} images, {len(test)} held-out "
               f"pairs; backbone {self.backbone} ({'trained' if finetune else 'frozen'})", file=sys.stderr)
@@ -286,6 +301,8 @@ class TrainPref:
             raise UserError(f"hpgs train-pref: {err}") from None
         model.save(self.out)
         held = model.meta["heldout"]
-        acc = "n/a" if held["accuracy"] is None else f"{held['accuracy']:.1%}"
-        print(f"train-pref: held-out accuracy {acc} on {held['pairs']} pairs ({held['images']} unseen images), "
-                      f"train accuracy {model.meta['train_accuracy']:.1%} -> {self.out}", file=sys.stderr)
+        if held["accuracy"] is None:  # --test-fraction 0
+            heldout = "no held-out accuracy (--test-fraction 0: every pair trained)"
+        else:
+            heldout = f"held-out accuracy {held['accuracy']:.1%} on {held['pairs']} pairs ({held['images']} unseen images)"
+        print(f"train-pref: {heldout}, train accuracy {model.meta['train_accuracy']:.1%} -> {self.out}", file=sys.stderr)

@@ -30,7 +30,7 @@ from hpgs_ns.selectors import (
     SelectorConfig,
     registry,
 )
-from hpgs_ns.selectors.registry import SelectorName
+from hpgs_ns.selectors.registry import SelectorName, selector_names
 
 
 def _rounds():
@@ -138,6 +138,8 @@ class SelectionConfig(InstantiateConfig):
 
 # Numeric options' sensible values: name -> (test, what the value must be, the fix).
 VALUE_RULES = {
+    "selector": (lambda v: v in selector_names(), "unknown selector",
+                 "choose one of " + ", ".join(selector_names()) + " (or install the package that registers it)"),
     "select_every": (lambda v: v >= 0, "must be >= 0 (a round every this many steps)",
                      "pass 0 for no periodic rounds, or --pipeline.selection.select-at STEP ..."),
     "select_at": (lambda v: all(s >= 1 for s in v), "round steps must be >= 1 (no round runs at step 0)",

@@ -149,8 +149,14 @@ class SelectionRounds:
                 CONSOLE.print(f"stop-when-gain-below {self.config.stop_when_gain_below:g} dB: the first round is predicted "
                               f"to gain {gain:.2f} dB; selection stops at the first round predicted below it")
             if why:
-                what = ("no selection rounds will run" if count == 0
-                        else f"only {count} of {self.config.max_rounds} selection rounds will run")
+                ran = len(self.datamanager.history)  # rounds a resumed run ran before its checkpoint
+                total = ran + count
+                if count == 0:
+                    what = f"no more selection rounds will run ({ran} ran before the checkpoint)" if ran else \
+                        "no selection rounds will run"
+                else:
+                    what = f"only {total} of {self.config.max_rounds} selection rounds will run"
+                    what += f" ({ran} before the checkpoint, {count} from step {first})" if ran else ""
                 CONSOLE.print(f"[yellow]{what}: {why}", soft_wrap=True)
         dm = self.datamanager
         active_mode = getattr(dm, "seed_points_mode", None) == "active"

@@ -15,7 +15,10 @@ from __future__ import annotations
 
 import copy
 from importlib.metadata import entry_points
-from typing import Dict, List, Literal, Type
+from typing import Dict, List, Type
+
+import tyro
+from typing_extensions import Annotated
 
 from hpgs_ns.selectors.base import SelectionError, SelectorConfig
 from hpgs_ns.selectors.blend import BlendSelectorConfig
@@ -67,9 +70,10 @@ def selector_config(name: str) -> SelectorConfig:
     return config
 
 
-# Every registered selector, built-in or from another package's entry point, as a type tyro can offer as choices
-# (read once, when this module is imported).
-SelectorName = Literal[tuple(selector_names())]  # type: ignore[valid-type]
+# Every registered selector, built-in or from another package's entry point, as tyro shows the choices (read once,
+# when this module is imported). A string, not a Literal: tyro would draw its own error box for an unknown name and
+# exit 2; `SelectionConfig` checks it instead (one line, `unknown selector`).
+SelectorName = Annotated[str, tyro.conf.arg(metavar="{" + ",".join(selector_names()) + "}")]
 
 
 def selector_class(name: str) -> Type[SelectorConfig]:

@@ -80,17 +80,18 @@ class Run:
 
 def load_run(config_path: Path) -> Run:
     """The run's pipeline (stock splatfacto's model swapped for the plugin's), on the GPU if there is one."""
-    import yaml
     from nerfstudio.models.splatfacto import SplatfactoModelConfig
     from nerfstudio.utils.eval_utils import eval_setup
 
     from hpgs_ns.dataparser import view_name
     from hpgs_ns.model import HpgsSplatfactoModelConfig
+    from hpgs_ns.run_config import RunConfigError, read_run_config
 
     config_path = Path(config_path)
-    if not config_path.is_file():
-        raise SuggestError(f"{config_path} not found; pass --load-config RUN/config.yml of a trained run")
-    config = yaml.load(config_path.read_text(), Loader=yaml.Loader)
+    try:
+        config = read_run_config(config_path)
+    except RunConfigError as err:
+        raise SuggestError(str(err)) from None
     checkpoints = config_path.parent / "nerfstudio_models"
     if not checkpoints.is_dir() or not list(checkpoints.glob("step-*.ckpt")):
         raise SuggestError(f"{config_path.parent} has no checkpoint (nerfstudio_models/step-*.ckpt); train the run first")
@@ -106,7 +107,20 @@ def load_run(config_path: Path) -> Run:
             config_path.parent.parent.parent.name, config_path.parent.parent.name, config_path.parent.name)
         return cfg
 
-    config, pipeline, _, _ = eval_setup(config_path, test_mode="test", update_config_callback=to_plugin)
+    try:
+        config, pipeline, _, _ = eval_setup(config_path, test_mode="test", update_config_callback=to_plugin)
+    except UserError:
+        raise
+    except Exception:
+        # nerfstudio loads the newest checkpoint by name: one that does not load is named here, else the traceback
+        from hpgs_ns.trainer import CheckpointError, checkpoint_step, load_checkpoint_file
+
+        newest = max(checkpoints.glob("step-*.ckpt"), key=checkpoint_step)
+        try:
+            load_checkpoint_file(newest)
+        except CheckpointError as err:
+            raise SuggestError(f"{err}; move it out of {checkpoints} to use the one before it") from None
+        raise
     dm = pipeline.datamanager
     root = Path(dm.config.dataparser.data)
     names = list(getattr(dm, "image_names", None) or [view_name(p, root) for p in dm.train_dataset.image_filenames])
