@@ -123,6 +123,21 @@ def rows(args: argparse.Namespace) -> None:
                 half = 1.96 * sd / math.sqrt(len(diffs))
                 print(f"N={n}: MPS - no MPS, {len(diffs)} pairs: {statistics.fmean(diffs):+.3f} dB "
                       f"[{statistics.fmean(diffs) - half:+.3f}, {statistics.fmean(diffs) + half:+.3f}], SD {sd:.3f}")
+    # Every (scene, seed) run both ways: the mean of its MPS runs (any N) minus the mean of its runs without MPS.
+    cells: Dict[Tuple[str, int], Dict[str, List[float]]] = {}
+    for (mode, _n), values in psnr.items():
+        for key, value in values.items():
+            cells.setdefault(key, {}).setdefault(mode, []).append(value)
+    diffs = [statistics.fmean(c["on"]) - statistics.fmean(c["off"]) for c in cells.values() if "on" in c and "off" in c]
+    if len(diffs) > 1:
+        mean, half = statistics.fmean(diffs), 1.96 * statistics.stdev(diffs) / math.sqrt(len(diffs))
+        print(f"every N: MPS - no MPS, {len(diffs)} (scene, seed) cells: {mean:+.3f} dB [{mean - half:+.3f}, {mean + half:+.3f}]")
+    for mode in ("off", "on"):  # the spread of repeats of one (scene, seed), pooled
+        groups = [c[mode] for c in cells.values() if len(c.get(mode, [])) > 1]
+        dof = sum(len(g) - 1 for g in groups)
+        if dof:
+            ss = sum((v - statistics.fmean(g)) ** 2 for g in groups for v in g)
+            print(f"repeat SD {'with' if mode == 'on' else 'without'} MPS: {math.sqrt(ss / dof):.3f} dB ({dof} df)")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         with atomic_path(args.json) as tmp:
@@ -147,7 +162,7 @@ def plot(table: List[Dict], path: Path, baseline: List[str]) -> None:
         ax.plot(*zip(*pts), "x:", color="gray", label="without MPS (docs' earlier curve, H100)")
     ax.set_xlabel("runs at once on one GPU")
     ax.set_ylabel("runs per GPU-hour")
-    ax.set_title("FisherRF protocol, 20000 steps")
+    ax.set_title(f"FisherRF protocol, 20000 steps, {' + '.join(max((r['scenes'] for r in table), key=len))}")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()

@@ -190,3 +190,16 @@ def test_a_real_sweep_records_mps_as_observed(fake_mps, tiny_scene, tmp_path):
     asked = [c["cmd"] for c in calls(fake_mps)]
     assert asked[0] == "-d" and asked[-1] == "quit" and asked.count("-d") == 1
     assert any(c.startswith("get_client_list") for c in asked)
+
+
+def test_the_default_runs_per_gpu_is_12_under_mps_and_4_without(fake_mps, tmp_path, monkeypatch):
+    from hpgs_ns.bench.executors import runs_per_gpu
+
+    assert runs_per_gpu(ExecutorConfig()) == 12  # local, auto, the binary found
+    assert runs_per_gpu(ExecutorConfig(mps="off")) == 4
+    assert runs_per_gpu(ExecutorConfig(mps="on", runs_per_gpu=3)) == 3
+    assert runs_per_gpu(ExecutorConfig(executor="ray")) == 4  # MPS on Ray's workers is the user's to start
+    assert runs_per_gpu(ExecutorConfig(executor="slurm", mps="on")) == 12
+    monkeypatch.setenv("PATH", str(tmp_path))
+    monkeypatch.setattr(cuda_mps, "DRIVER_FOLDERS", ())
+    assert runs_per_gpu(ExecutorConfig()) == 4  # auto without the binary: no MPS
