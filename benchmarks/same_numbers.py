@@ -43,9 +43,11 @@ def run_one(scene: Path, out: Path, selector: str, seed: int, steps: int, old_sp
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True)
     if proc.returncode != 0:
         raise SystemExit(f"{selector}: ns-train failed:\n{proc.stderr[-3000:]}")
-    log = json.loads(next((out / "same" / "hpgs" / selector).rglob("selected_views.json")).read_text())
+    from hpgs_ns.selection.log import SelectionLog
+
+    log = SelectionLog.read(next((out / "same" / "hpgs" / selector).rglob("selected_views.json")))
     metrics = json.loads(eval_json.read_text())["results"]
-    return {"views": log["active"], "chosen": [r["chosen"] for r in log["rounds"]],
+    return {"views": log.active, "chosen": [r.chosen for r in log.rounds],
             "psnr": metrics["psnr"], "ssim": metrics["ssim"], "lpips": metrics["lpips"]}
 
 

@@ -18,6 +18,7 @@ from pathlib import Path
 import torch
 
 from hpgs_ns.ns_train import SELECTION_PREFIX
+from hpgs_ns.selection.log import SelectionLog
 
 
 def main() -> None:
@@ -46,13 +47,13 @@ def main() -> None:
         proc = subprocess.run(cmd, capture_output=True, text=True)
         if proc.returncode != 0:
             raise SystemExit(f"selector_speed: {sel} run failed:\n" + "\n".join(proc.stderr.splitlines()[-30:]))
-        log = json.loads((args.out / "runs" / "speed" / "hpgs" / sel / "selected_views.json").read_text())
+        log = SelectionLog.read(args.out / "runs" / "speed" / "hpgs" / sel)
         ckpt = sorted((args.out / "runs" / "speed" / "hpgs" / sel / "nerfstudio_models").glob("*.ckpt"))[-1]
         n = torch.load(ckpt, map_location="cpu", weights_only=True)["pipeline"]["_model.gauss_params.means"].shape[0]
-        r = log["rounds"][-1]
-        row = {"selector": sel, "round_seconds": r["seconds"], "all_round_seconds": [x["seconds"] for x in log["rounds"]],
-               "work": r.get("work", {}), "candidates": len(r["scores"]),
-               "active_before": r["num_active"] - len(r["chosen"]), "gaussians": int(n), "chosen": r["chosen"],
+        r = log.rounds[-1]
+        row = {"selector": sel, "round_seconds": r.seconds, "all_round_seconds": [x.seconds for x in log.rounds],
+               "work": r.work, "candidates": len(r.scores),
+               "active_before": r.num_active - len(r.chosen), "gaussians": int(n), "chosen": r.chosen,
                "wall_seconds": time.perf_counter() - start,
                "device": torch.cuda.get_device_name(0) if torch.cuda.is_available() else "cpu"}
         print(json.dumps(row), flush=True)

@@ -81,13 +81,12 @@ class Demo:
         minutes = (time.perf_counter() - start) / 60
         config = latest_config(self.out / "runs" / "hpgs" / run_name)
         metrics = json.loads((config.parent / "final_eval.json").read_text())["results"]
-        from hpgs_ns.selection.records import read_round_log
+        from hpgs_ns.selection.log import SelectionLog
 
-        selected = read_round_log(config.parent / "selected_views.json")
-        added = sum(len(r["chosen"]) for r in selected["rounds"])
+        selected = SelectionLog.read(config.parent)
         print(
             f"test PSNR {metrics['psnr']:.2f} dB  SSIM {metrics['ssim']:.3f}  LPIPS {metrics['lpips']:.3f}  "
-            f"({len(selected['active'])} views, {added} added by {self.selector} in {len(selected['rounds'])} rounds, "
+            f"({len(selected.active)} views, {len(selected.chosen)} added by {self.selector} in {len(selected.rounds)} rounds, "
             f"{minutes:.1f} min)"
         )
         print(f"run: {config.parent}")

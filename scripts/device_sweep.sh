@@ -7,6 +7,8 @@
 # scenes, or one half of .dev-vgg each (VGG16, which `hpgs`, `condorcet` and `blend` need with the shipped
 # preference model; start those sweeps once both halves are there: `env` prints what the machine has).
 # Chain the calls back to back: a machine idle for 30 s is given back, and the sweeps running on it die with it.
+# Runs sharing a GPU run under CUDA MPS (`hpgs bench --mps auto`: the lent machines have nvidia-cuda-mps-control in
+# /usr/local/nvidia/bin, and --runs-per-gpu then defaults to 12); pass --mps off in ARGS to compare without it.
 #   HPGS_GIT_COMMIT=<sha> bash scripts/device_sweep.sh start 'ARGS1' 'ARGS2' ...   # one `hpgs bench` per ARGS, in order
 #   HPGS_GIT_COMMIT=<sha> bash scripts/device_sweep.sh parallel 'ARGS1' 'ARGS2'    # the same, all at once (one GPU shared)
 #   HPGS_GIT_COMMIT=<sha> bash scripts/device_sweep.sh then 'ARGS1' 'ARGS2'        # all at once, once the group before ends

@@ -280,7 +280,7 @@ ROUND_LOG = {"selector": "random", "seed": 0, "initial": ["images/0001.png"], "a
 
 
 def test_damaged_round_logs_read_or_fail_in_one_line(tmp_path):
-    from hpgs_ns.selection.records import RoundLogError, read_round_log
+    from hpgs_ns.selection.log import RoundLogError, SelectionLog
 
     path = tmp_path / "selected_views.json"
 
@@ -288,7 +288,7 @@ def test_damaged_round_logs_read_or_fail_in_one_line(tmp_path):
     @given(st.one_of(retyped(ROUND_LOG).map(lambda t: json.dumps(t).encode()), damaged(json.dumps(ROUND_LOG).encode())))
     def check(data):
         path.write_bytes(data)
-        reads_or_one_line(lambda: read_round_log(path), path, RoundLogError)
+        reads_or_one_line(lambda: SelectionLog.read(path), path, RoundLogError)
 
     check()
 

@@ -30,7 +30,7 @@ from hpgs_ns.preference.recipe import CheckpointError as PreferenceCheckpointErr
 from hpgs_ns.run_config import RunConfigError, read_run_config
 from hpgs_ns.scenes.colmap_model import ColmapModelError, read_model_file
 from hpgs_ns.scenes.synthetic import make_scene
-from hpgs_ns.selection.records import RoundLogError, read_round_log
+from hpgs_ns.selection.log import RoundLogError, SelectionLog
 from hpgs_ns.trainer import CheckpointError, load_checkpoint_file
 
 REPO = Path(__file__).resolve().parent.parent
@@ -412,12 +412,16 @@ def test_a_broken_round_log_is_one_line(tmp_path, make, says):
     path = tmp_path / "selected_views.json"
     path.write_text(make())
     with pytest.raises(RoundLogError) as info:
-        read_round_log(path)
+        SelectionLog.read(path)
     line = one_line(info.value)
     assert line.startswith(f"{path} {says}") and line.endswith("re-run the training (a finished run writes it), or "
                                                                "restore it from a copy")
     path.write_text(json.dumps(ROUND_LOG))
-    assert read_round_log(path) == ROUND_LOG
+    log = SelectionLog.read(path)
+    assert [r.to_dict() for r in log.rounds] == [{**r, "test_psnr_before": None, "reset": False, "scores": {},
+                                                  "work": {}} for r in ROUND_LOG["rounds"]]
+    assert (log.version, log.selector, log.seed, log.test, log.stopped) == (2, "random", 0, ["images/0000.png"], None)
+    assert (log.initial, log.active, log.chosen) == (ROUND_LOG["initial"], ROUND_LOG["active"], ["images/0002.png"])
 
 
 CHECKPOINT_CASES = [

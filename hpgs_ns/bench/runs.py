@@ -49,6 +49,8 @@ from hpgs_ns.bench.suites import SYNTHETIC, Scene, load_suite, scene_from_folder
 from hpgs_ns.errors import UserError
 from hpgs_ns.ns_train import SELECTION_PREFIX, ns_train_command
 from hpgs_ns.selection.early_stop import DEFAULT_GAIN_MODEL
+from hpgs_ns.selection.log import SelectionLog
+from hpgs_ns.selection.records import RoundRecord
 
 CONSOLE = Console(stderr=True)
 PREFERENCE_SELECTORS = ("hpgs", "condorcet", "blend")  # the selectors that score with a preference model
@@ -552,8 +554,8 @@ def run_one(bench: Bench, job: Job, env: Optional[Dict[str, str]] = None, sweep:
         keep_candidate_log(log, job.result_path(bench.out).with_name(f"{job.stem}-candidates.jsonl.gz"))
     metrics = json.loads((run_dir / "eval.json").read_text())
     worst_views = keep_worst_views(metrics, run_dir, job.result_path(bench.out))
-    selected = json.loads((run_dir / "selected_views.json").read_text())
-    rounds = selected["rounds"]
+    selected = SelectionLog.read(run_dir)
+    rounds = selected.rounds
     timing = train_timing(run_dir)
     return RunResult(
         scene=job.scene.name,
@@ -568,31 +570,31 @@ def run_one(bench: Bench, job: Job, env: Optional[Dict[str, str]] = None, sweep:
         test=Metrics.from_dict(metrics["results"]),
         # per-view metrics, where the trainer's final eval records them
         test_views=[ViewMetrics(v["name"], v["psnr"], v["ssim"], v["lpips"]) for v in metrics.get("test_views", [])],
-        num_test_views=len(selected["test"]),
-        num_train_views=len(selected["active"]) + len(selected["withheld"]),
-        num_views_final=len(selected["active"]),
-        psnr_at_round_steps={int(k): v for k, v in selected.get("test_psnr_at_round_steps", {}).items()},
-        psnr_per_round=[RoundPsnr(r["step"], r["num_active"] - len(r["chosen"]), r["test_psnr_before"]) for r in rounds],
+        num_test_views=len(selected.test),
+        num_train_views=len(selected.active) + len(selected.withheld),
+        num_views_final=len(selected.active),
+        psnr_at_round_steps=dict(selected.test_psnr_at_round_steps),
+        psnr_per_round=[RoundPsnr(r.step, r.num_active - len(r.chosen), r.test_psnr_before) for r in rounds],
         timing=Timing(
             wall_seconds=wall,
-            selection_seconds=float(sum(r["seconds"] for r in rounds)),
-            selection_seconds_per_round=[r["seconds"] for r in rounds],
+            selection_seconds=float(sum(r.seconds for r in rounds)),
+            selection_seconds_per_round=[r.seconds for r in rounds],
             train_iter_ms_median=timing.get("train_iter_ms_median"),
             train_total_seconds=timing.get("train_total_seconds"),
             started_at=started,
             sweep_id=sweep.get("id"),
             runs_per_gpu=sweep.get("runs_per_gpu", 1),
             peak_host_rss_mb=usage.ru_maxrss / 1024,
-            peak_gpu_allocated_mb=selected.get("peak_gpu_memory_mb"),
+            peak_gpu_allocated_mb=selected.peak_gpu_memory_mb,
             gpu=(env or os.environ).get("CUDA_VISIBLE_DEVICES"),
             mps=under_mps,
         ),
         selection_work=summed_work(rounds),
         worst_views=worst_views,
         num_gaussians=metrics.get("num_gaussians"),
-        seed_points=start_label(selected.get("seed_points"), bool(selected.get("random_start"))),
-        initial_views=selected["initial"],
-        chosen_views=[v for r in rounds for v in r["chosen"]],
+        seed_points=start_label(selected.seed_points, selected.random_start),
+        initial_views=selected.initial,
+        chosen_views=selected.chosen,
         provenance=Provenance(command=shlex.join(cmd), device=device_name(), git_commit=provenance.git_commit(),
                               libraries=library_versions(), settings=run_settings(bench, job)),
         final_set_of=SourceRun(job.source, job.seed, job.repeat, list(job.views)) if job.name == FINAL_SET else None,
@@ -617,11 +619,11 @@ def wait_watching_mps(pid: int, env: Dict[str, str], every: float = 2.0):
         time.sleep(every)
 
 
-def summed_work(rounds: List[dict]) -> Dict[str, float]:
+def summed_work(rounds: Sequence[RoundRecord]) -> Dict[str, float]:
     """The selectors' work counters (`Selection.work`) summed over a run's rounds."""
     total: Dict[str, float] = {}
     for r in rounds:
-        for key, value in r.get("work", {}).items():
+        for key, value in r.work.items():
             total[key] = total.get(key, 0.0) + value
     return total
 

@@ -1,48 +1,14 @@
 """What the selection loop records: one `RoundRecord` per round, and a `StopRecord` when early stop ends it.
 
 The datamanager keeps the records (they go into every checkpoint as plain dicts, `to_dict`), the round log
-`selected_views.json` lists them, and the viewer and the candidate log read them. `from_dict` reads the dicts of
+`selected_views.json` (`log.SelectionLog`) lists them, and the viewer and the candidate log read them. `from_dict` reads the dicts of
 every earlier version (0.1 logs lack `work`, older ones `reset`).
 """
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any, Dict, List, Optional
-
-from hpgs_ns.errors import UserError
-
-
-class RoundLogError(UserError, ValueError):
-    """A `selected_views.json` that cannot be read."""
-
-
-def read_round_log(path: Path) -> Dict[str, Any]:
-    """A run's `selected_views.json` (its `rounds` checked to be round records, its view lists lists of names), or
-    RoundLogError naming the file and the fix."""
-    path = Path(path)
-    fix = "re-run the training (a finished run writes it), or restore it from a copy"
-    if not path.is_file():
-        raise RoundLogError(f"{path} not found; {fix}")
-    try:
-        log = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError) as err:  # UnicodeDecodeError and json's errors are ValueErrors
-        raise RoundLogError(f"{path} is not readable JSON ({type(err).__name__}: {str(err)[:120]}); {fix}") from None
-    try:
-        if not isinstance(log, dict) or not isinstance(log.get("rounds"), list):
-            raise TypeError("no list of rounds")
-        for key in ("initial", "active", "withheld", "test"):
-            if not isinstance(log.get(key, []), list) or not all(isinstance(n, str) for n in log.get(key, [])):
-                raise TypeError(f"{key} is not a list of view names")
-        for entry in log["rounds"]:
-            record = RoundRecord.from_dict(entry)
-            if not all(isinstance(n, str) for n in record.chosen):
-                raise TypeError(f"round {record.round} chose {record.chosen!r}")
-    except (KeyError, TypeError, ValueError, AttributeError) as err:
-        raise RoundLogError(f"{path} is not a round log ({type(err).__name__}: {str(err)[:120]}); {fix}") from None
-    return log
 
 
 @dataclass
@@ -124,3 +90,7 @@ class StopRecord:
     def to_dict(self) -> Dict[str, Any]:
         return {"step": int(self.step), "views": int(self.views), "predicted_gain_db": float(self.predicted_gain_db),
                 "threshold_db": float(self.threshold_db)}
+
+    @classmethod
+    def from_dict(cls, data: Dict[str, Any]) -> StopRecord:
+        return cls(int(data["step"]), int(data["views"]), float(data["predicted_gain_db"]), float(data["threshold_db"]))

@@ -13,10 +13,11 @@ model owns rendering; the selector owns scoring. This class asks each for its pa
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from pathlib import Path
-from typing import Callable, Dict, List, Optional, Tuple
+from typing import Any, Callable, Dict, List, Optional, Tuple
 
 import numpy as np
 import torch
@@ -24,12 +25,12 @@ from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttrib
 from nerfstudio.utils import writer
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from hpgs_ns.atomic_write import write_json_atomic
 from hpgs_ns.errors import UserError
 from hpgs_ns.schedules import restart_schedules
 from hpgs_ns.selection.after_add import apply_after_add, restarts_at
 from hpgs_ns.selection.candidate_log import CandidateLog
 from hpgs_ns.selection.early_stop import GainModel
+from hpgs_ns.selection.log import FILE_NAME, SelectionLog
 from hpgs_ns.selection.records import RoundRecord, StopRecord
 from hpgs_ns.selection.schedule import Every, run_steps
 from hpgs_ns.selectors.base import Selection, SelectionContext, SelectionError, Selector, check_selection
@@ -206,26 +207,13 @@ class SelectionRounds:
             if self.is_round_step(step):
                 before = len(self.datamanager.active)
                 self.run_round(step)
-                active_seeds = active_mode and attrs.optimizers is not None
-                if self.config.reset_after_add:
-                    self.reset_model(step, attrs.optimizers)
-                elif restarts_at(restart_counts, before, len(self.datamanager.active)):
-                    from_splat = (self.config.after_add.restart_from == "splat" and attrs.optimizers is not None
-                                  and hasattr(self.model, "opaque_points"))
-                    splat_points = self.model.opaque_points() if from_splat else None  # before the reset drops them
-                    self.reset_model(step, attrs.optimizers, end=end)
-                    if splat_points is None or not self.reseed_from_splat(*splat_points, attrs.optimizers):
-                        self.reseed_from_start(step, attrs.optimizers, active_seeds)
-                        active_seeds = False  # an active restart triangulated every active view already
-                    # else (active mode): the round's triangulated points away from the splat's join, as after any round
-                    self.datamanager.history[-1].num_gaussians_after_reset = int(self.model.num_points)
-                    self.write_log()
-                elif self.config.after_add.enabled and attrs.optimizers is not None:
-                    self.datamanager.history[-1].after_add = apply_after_add(self.config.after_add, self.model, attrs.optimizers,
-                                                                             step, end or None)
-                    self.write_log()
-                if active_seeds:
-                    self.add_seed_points(step, attrs.optimizers)
+                done = self.after_round(step, attrs.optimizers, before, restart_counts, end, active_mode)
+                # The round is recorded once, with what every step after the add did, and logged once.
+                record = self.datamanager.history[-1]
+                self.datamanager.history[-1] = dataclasses.replace(
+                    record, **{k: v for k, v in done.items() if k != "after_add"},
+                    after_add={**record.after_add, **done.get("after_add", {})})
+                self.write_log()
             elif self.config.eval_each_round and self.is_scheduled(step):
                 # No round here (none left, or a reference run): the test PSNR at the step still says what the
                 # views so far are worth against a run that added others (early_stop's calibration).
@@ -237,6 +225,35 @@ class SelectionRounds:
                 TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], lambda step: self.write_log(), iters=(end - 1,))
             )
         return callbacks
+
+    def after_round(self, step: int, optimizers, before: int, restart_counts: Tuple[int, ...], end: int,
+                    active_mode: bool) -> Dict[str, Any]:
+        """What follows a round's add: reset-after-add, a restart (and the points it starts from), after-add, and
+        `seed-points active`'s new points. Returns the RoundRecord fields they set (`after_add` to be merged)."""
+        done: Dict[str, Any] = {}
+        after_add: Dict[str, float] = {}
+        active_seeds = active_mode and optimizers is not None
+        if self.config.reset_after_add:
+            done.update(self.reset_model(step, optimizers))
+        elif restarts_at(restart_counts, before, len(self.datamanager.active)):
+            from_splat = (self.config.after_add.restart_from == "splat" and optimizers is not None
+                          and hasattr(self.model, "opaque_points"))
+            splat_points = self.model.opaque_points() if from_splat else None  # before the reset drops them
+            done.update(self.reset_model(step, optimizers, end=end))
+            reseeded = self.reseed_from_splat(*splat_points, optimizers) if splat_points is not None else {}
+            if not reseeded:
+                reseeded = self.reseed_from_start(step, optimizers, active_seeds)
+                active_seeds = False  # an active restart triangulated every active view already
+            # else (active mode): the round's triangulated points away from the splat's join, as after any round
+            after_add.update(reseeded)
+            done["num_gaussians_after_reset"] = int(self.model.num_points)
+        elif self.config.after_add.enabled and optimizers is not None:
+            after_add.update(apply_after_add(self.config.after_add, self.model, optimizers, step, end or None))
+        if active_seeds:
+            after_add.update(self.add_seed_points(step, optimizers))
+        if after_add:
+            done["after_add"] = after_add
+        return done
 
     # ---- one round -------------------------------------------------------------------------------------------
 
@@ -264,7 +281,8 @@ class SelectionRounds:
         )
 
     def run_round(self, step: int) -> Selection:
-        """Ask the selector for views, make them active, and log the round."""
+        """Ask the selector for views, make them active, and record the round (`after_round` follows; the caller
+        logs the finished round)."""
         dm = self.datamanager
         test_psnr = self.test_psnr() if self.config.eval_each_round else None
         context = self.context(step)
@@ -296,14 +314,14 @@ class SelectionRounds:
         writer.put_scalar("selection/num_active", len(dm.active), step)
         self._log_chosen_render(selection.indices[0], step)
         self._log_scores_plot(selection, step)
-        self.write_log()
         for listener in self.listeners:
             listener(record)
         return selection
 
-    def reset_model(self, step: int, optimizers, end: Optional[int] = None) -> None:
+    def reset_model(self, step: int, optimizers, end: Optional[int] = None) -> Dict[str, Any]:
         """The model back to its step-0 state and every schedule restarted at `step` (reset-after-add); with `end`
-        (after-add restart-at-views), the schedules squeezed into the steps from `step` to `end`."""
+        (after-add restart-at-views), the schedules squeezed into the steps from `step` to `end`. Returns the round
+        record's reset fields."""
         model = self.model
         if optimizers is None or not hasattr(model, "reset_to_initial"):
             raise RoundError("reset-after-add needs the hpgs model and the trainer's optimizers")
@@ -318,73 +336,65 @@ class SelectionRounds:
             restart_schedules(optimizers, span=left)
             what = (f"restart at {len(self.datamanager.active)} views: {before} -> {model.num_points} Gaussians, "
                     f"every schedule reruns in the {left} steps left")
-        record = self.datamanager.history[-1]
-        record.reset = True
-        record.num_gaussians_before_reset, record.num_gaussians_after_reset = int(before), int(model.num_points)
         CONSOLE.print(what)
         writer.put_scalar("selection/num_gaussians_before_reset", before, step)
-        self.write_log()
+        return {"reset": True, "num_gaussians_before_reset": int(before), "num_gaussians_after_reset": int(model.num_points)}
 
-    def reseed_from_start(self, step: int, optimizers, active_seeds: bool) -> None:
+    def reseed_from_start(self, step: int, optimizers, active_seeds: bool) -> Dict[str, float]:
         """A restart's start points when it does not start from the splat: with `seed-points active`, what the
         active views triangulate now; with `random-points views`, points drawn again along the active views' rays
         (unless an earlier restart already seeded the splat by triangulation: its step-0 Gaussians are those
-        points); otherwise the step-0 Gaussians the reset put back."""
+        points); otherwise the step-0 Gaussians the reset put back. Returns the round's `after_add` entries."""
         triangulated = any(h.after_add.get("seed_points_restart", 0) > 0 for h in self.datamanager.history[:-1])
         redraw = getattr(self.model, "view_points_start", False) and not triangulated
-        reseeded = self.reseed_from_active(step, optimizers, redraw) if active_seeds else 0
-        if redraw and not reseeded and optimizers is not None:
-            self.reseed_from_views(optimizers)
+        done = self.reseed_from_active(step, optimizers, redraw) if active_seeds else {}
+        if redraw and not done.get("seed_points_restart") and optimizers is not None:
+            done = {**done, **self.reseed_from_views(optimizers)}
+        return done
 
-    def reseed_from_splat(self, xyz: torch.Tensor, rgb: torch.Tensor, optimizers) -> int:
+    def reseed_from_splat(self, xyz: torch.Tensor, rgb: torch.Tensor, optimizers) -> Dict[str, float]:
         """`after-add restart-from splat`: the splat starts over from its own opaque Gaussians' centres and colours
-        (taken before the reset). None opaque: returns 0 and the restart falls back to `restart-from start`.
-        Recorded in the round's `after_add` (`splat_points_restart`)."""
-        record = self.datamanager.history[-1]
+        (taken before the reset): `{"splat_points_restart": count}`. None opaque: {} and the restart falls back to
+        `restart-from start`."""
         if xyz.shape[0] == 0:
             CONSOLE.print("[yellow]restart-from splat: no Gaussian is opaque enough to keep; this restart starts as "
                           "restart-from start does", soft_wrap=True)
-            return 0
+            return {}
         count = self.model.replace_gaussians(xyz, rgb, optimizers)
-        record.after_add = {**record.after_add, "splat_points_restart": float(count)}
         CONSOLE.print(f"restart: the splat starts from its own {count} opaque Gaussians as points "
                       f"({len(self.datamanager.active)} views)")
-        return count
+        return {"splat_points_restart": float(count)}
 
-    def reseed_from_views(self, optimizers) -> int:
+    def reseed_from_views(self, optimizers) -> Dict[str, float]:
         """`random-points views` at a restart: the splat starts over from points drawn along all active views' rays
-        (not only the initial views'). Recorded in the round's `after_add` (`view_points_restart`)."""
+        (not only the initial views'): `{"view_points_restart": count}`."""
         dm = self.datamanager
         xyz, rgb = dm.points_along_active_views()
         count = self.model.replace_gaussians(xyz, rgb, optimizers)
-        dm.history[-1].after_add = {**dm.history[-1].after_add, "view_points_restart": float(count)}
         CONSOLE.print(f"restart: the splat starts from {count} random points along the rays of {len(dm.active)} views")
-        return count
+        return {"view_points_restart": float(count)}
 
-    def reseed_from_active(self, step: int, optimizers, views_next: bool = False) -> int:
+    def reseed_from_active(self, step: int, optimizers, views_next: bool = False) -> Dict[str, float]:
         """`seed-points active` at a restart: the splat starts over from the points the active views triangulate now
         (not from the initial views' few, or random, points); with too few, from its step-0 Gaussians (or, with
-        `views_next`, from random-points views drawn next). Recorded in the round's `after_add`
-        (`seed_points_restart`)."""
+        `views_next`, from random-points views drawn next). Returns `seed_points_restart` (the count) and
+        `seed_points_seconds`."""
         dm, model = self.datamanager, self.model
         start = time.perf_counter()
         xyz, rgb, info = dm.triangulate_active()
         count = model.replace_gaussians(xyz, rgb, optimizers) if info.ok else 0
-        record = dm.history[-1]
-        record.after_add = {**record.after_add, "seed_points_restart": float(count),
-                            "seed_points_seconds": float(time.perf_counter() - start)}
         if count:
             CONSOLE.print(f"restart: the splat starts from {count} points triangulated from {len(dm.active)} views")
         else:
             instead = "random points along the active views' rays" if views_next else "its step-0 Gaussians"
             CONSOLE.print(f"[yellow]restart: {info.message or 'no points triangulated'}; the splat starts from {instead}",
                           soft_wrap=True)
-        return count
+        return {"seed_points_restart": float(count), "seed_points_seconds": float(time.perf_counter() - start)}
 
-    def add_seed_points(self, step: int, optimizers) -> int:
+    def add_seed_points(self, step: int, optimizers) -> Dict[str, float]:
         """`seed-points active`: triangulate the active views again (the round's new views with the earlier ones,
         whose features and matches the datamanager's workspace keeps) and add the points away from the splat as new
-        Gaussians. Recorded in the round's `after_add` (`seed_points_added`, `seed_points_seconds`)."""
+        Gaussians. Returns `seed_points_added` and `seed_points_seconds`."""
         dm, model = self.datamanager, self.model
         start = time.perf_counter()
         xyz, rgb, info = dm.triangulate_active()
@@ -395,14 +405,11 @@ class SelectionRounds:
             away = model.points_away_from_splat(xyz)
             added = model.add_gaussians(xyz[away], rgb[away], optimizers)
         seconds = time.perf_counter() - start
-        record = dm.history[-1]
-        record.after_add = {**record.after_add, "seed_points_added": float(added), "seed_points_seconds": float(seconds)}
         if not info.failed:  # a failure had its one line above
-            CONSOLE.print(f"seed points after round {record.round}: {xyz.shape[0]} triangulated from {len(dm.active)} "
+            CONSOLE.print(f"seed points after round {len(dm.history)}: {xyz.shape[0]} triangulated from {len(dm.active)} "
                           f"views, {added} away from the splat added ({model.num_points} Gaussians, {seconds:.1f} s)")
         writer.put_scalar("selection/seed_points_added", added, step)
-        self.write_log()
-        return added
+        return {"seed_points_added": float(added), "seed_points_seconds": float(seconds)}
 
     @torch.no_grad()
     def test_psnr(self) -> float:
@@ -423,30 +430,33 @@ class SelectionRounds:
         """Write `selected_views.json` in the run directory (temp file, then rename)."""
         if self.run_dir is None:
             return None
+        return self.log().write(self.run_dir / FILE_NAME)
+
+    def log(self) -> SelectionLog:
+        """The round log as it stands: the datamanager's views and records, and what this loop measured."""
         dm = self.datamanager
         names = dm.image_names
-        payload = {
-            "selector": self.config.selector,
-            "seed": self.seed,
-            "reset_after_add": self.config.reset_after_add,
-            "seed_points": getattr(dm, "seed_points_mode", None),  # as resolved: `auto` is colmap or active
-            "random_start": bool(getattr(self.model, "random_start", False)),  # that mode found no points
-            "initial": [names[i] for i in dm.initial_views],
-            "rounds": [record.to_dict() for record in dm.history],
-            "active": [names[i] for i in dm.active],
-            "withheld": [names[i] for i in dm.candidates],
-            "test": dm.test_view_names,
-            "peak_gpu_memory_mb": torch.cuda.max_memory_allocated() / 2**20 if torch.cuda.is_available() else None,
-            "stopped": self.stopped.to_dict() if self.stopped is not None else None,
-            "test_psnr_at_round_steps": self.test_psnr_at_round_steps(),
-        }
-        return write_json_atomic(self.run_dir / "selected_views.json", payload)
+        return SelectionLog(
+            selector=self.config.selector,
+            seed=self.seed,
+            reset_after_add=self.config.reset_after_add,
+            seed_points=getattr(dm, "seed_points_mode", None),  # as resolved: `auto` is colmap or active
+            random_start=bool(getattr(self.model, "random_start", False)),  # that mode found no points
+            initial=[names[i] for i in dm.initial_views],
+            rounds=list(dm.history),
+            active=[names[i] for i in dm.active],
+            withheld=[names[i] for i in dm.candidates],
+            test=dm.test_view_names,
+            peak_gpu_memory_mb=torch.cuda.max_memory_allocated() / 2**20 if torch.cuda.is_available() else None,
+            stopped=self.stopped,
+            test_psnr_at_round_steps=self.test_psnr_at_round_steps(),
+        )
 
-    def test_psnr_at_round_steps(self) -> Dict[str, float]:
-        """eval-each-round: the test PSNR at every scheduled step, before its round if one ran ({str(step): dB})."""
+    def test_psnr_at_round_steps(self) -> Dict[int, float]:
+        """eval-each-round: the test PSNR at every scheduled step, before its round if one ran ({step: dB})."""
         values = {h.step: h.test_psnr_before for h in self.datamanager.history if h.test_psnr_before is not None}
         values.update(self.psnr_without_round)
-        return {str(k): float(values[k]) for k in sorted(values)}
+        return {int(k): float(values[k]) for k in sorted(values)}
 
     def _log_chosen_render(self, index: int, step: int) -> None:
         try:
