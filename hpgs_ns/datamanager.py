@@ -30,16 +30,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from hpgs_ns.dataparser import DataParserUnion, MipNerf360DataParserConfig, SceneDataError, check_image_sizes, view_name
 from hpgs_ns.errors import UserError, check_option
 from hpgs_ns.selection.records import RoundRecord
-from hpgs_ns.selectors import (
-    BlendSelectorConfig,
-    CondorcetSelectorConfig,
-    FarthestSelectorConfig,
-    FisherSelectorConfig,
-    HpgsSelectorConfig,
-    RandomSelectorConfig,
-)
 from hpgs_ns.selectors.farthest import farthest_point_order
-from hpgs_ns.selectors.registry import SelectorName
 
 
 class ActiveViewError(UserError, RuntimeError):
@@ -95,49 +86,9 @@ class ActiveDatamanagerConfig(FullImageDatamanagerConfig):
     splat well; a handful, mostly from one pair of views, may not beat splatfacto's random start."""
     strict_init: bool = False
     """Deprecated: --pipeline.datamanager.seed-points colmap-initial."""
-    # Up to 0.2 the selection loop's options were set here; they moved to `--pipeline.selection.*`
-    # (`hpgs_ns.selection.config`). These copies only carry the old spelling there, with a warning.
-    selector: Optional[SelectorName] = None
-    """Deprecated: --pipeline.selection.selector."""
-    select_every: Optional[int] = None
-    """Deprecated: --pipeline.selection.select-every."""
-    select_at: Optional[Tuple[int, ...]] = None
-    """Deprecated: --pipeline.selection.select-at."""
-    views_per_round: Optional[int] = None
-    """Deprecated: --pipeline.selection.views-per-round."""
-    max_rounds: Optional[int] = None
-    """Deprecated: --pipeline.selection.max-rounds."""
-    eval_each_round: Optional[bool] = None
-    """Deprecated: --pipeline.selection.eval-each-round."""
-    stop_when_gain_below: Optional[float] = None
-    """Deprecated: --pipeline.selection.stop-when-gain-below."""
-    gain_model: Optional[Path] = None
-    """Deprecated: --pipeline.selection.gain-model."""
-    log_candidate_scores: Optional[bool] = None
-    """Deprecated: --pipeline.selection.log-candidate-scores."""
-    snapshot_every: Optional[int] = None
-    """Deprecated: --pipeline.selection.snapshot-every."""
-    selection_short_side: Optional[int] = None
-    """Deprecated: --pipeline.selection.render-short-side."""
-    reset_after_add: Optional[bool] = None
-    """Deprecated: --pipeline.selection.reset-after-add."""
-    random: RandomSelectorConfig = field(default_factory=RandomSelectorConfig)
-    """Deprecated: --pipeline.selection.random.*"""
-    farthest: FarthestSelectorConfig = field(default_factory=FarthestSelectorConfig)
-    """Deprecated: --pipeline.selection.farthest.*"""
-    fisher: FisherSelectorConfig = field(default_factory=FisherSelectorConfig)
-    """Deprecated: --pipeline.selection.fisher.*"""
-    hpgs: HpgsSelectorConfig = field(default_factory=HpgsSelectorConfig)
-    """Deprecated: --pipeline.selection.hpgs.*"""
-    condorcet: CondorcetSelectorConfig = field(default_factory=CondorcetSelectorConfig)
-    """Deprecated: --pipeline.selection.condorcet.*"""
-    blend: BlendSelectorConfig = field(default_factory=BlendSelectorConfig)
-    """Deprecated: --pipeline.selection.blend.*"""
-
     def __post_init__(self) -> None:
         # tyro builds this config while it parses the command line: a value that makes no sense is a one-line error
-        # before nerfstudio prints the config or makes a run folder. (A config.yml is read without __init__.) The
-        # deprecated selection options are checked where the pipeline moves them (`take_datamanager_options`).
+        # before nerfstudio prints the config or makes a run folder. (A config.yml is read without __init__.)
         parent = getattr(super(), "__post_init__", None)
         if parent is not None:
             parent()

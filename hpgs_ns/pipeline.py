@@ -17,8 +17,9 @@ from typing import List, Optional, Type
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes
 from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineConfig
 
+from hpgs_ns import compat
 from hpgs_ns.errors import OptionError
-from hpgs_ns.selection.config import SelectionConfig, take_datamanager_options
+from hpgs_ns.selection.config import SelectionConfig
 from hpgs_ns.selection.rounds import SelectionRounds
 from hpgs_ns.selection.snapshots import Snapshots
 from hpgs_ns.viewer import SelectionView
@@ -32,17 +33,9 @@ class HpgsPipelineConfig(VanillaPipelineConfig):
     selection: SelectionConfig = field(default_factory=SelectionConfig)
     """The selection loop: when rounds run, the selector and its options, what is recorded."""
 
-    def __post_init__(self) -> None:
-        # tyro builds this config after the datamanager's: options given in the 0.2 spelling move here.
-        take_datamanager_options(self.datamanager, self.selection)
-
     def __setstate__(self, state: dict) -> None:
-        # A config.yml of 0.2 (PyYAML restores attributes, not __init__) has no `selection`: its options are the
-        # datamanager's, read here without a warning (the file is old, not its user).
-        self.__dict__.update(state)
-        if "selection" not in state:
-            self.selection = SelectionConfig()
-        take_datamanager_options(self.datamanager, self.selection, warn=False)
+        # PyYAML restores attributes, not __init__: a config.yml of 0.2 keeps its selection options elsewhere.
+        compat.read_pipeline_state(self, state)
 
 
 class HpgsPipeline(VanillaPipeline):
@@ -51,8 +44,6 @@ class HpgsPipeline(VanillaPipeline):
     config: HpgsPipelineConfig
 
     def __init__(self, config: HpgsPipelineConfig, device: str, test_mode="val", *args, **kwargs):
-        # Options set on the datamanager after the config was built (a script in the 0.2 spelling).
-        take_datamanager_options(config.datamanager, config.selection)
         if getattr(config.model, "random_init", False) and getattr(config.datamanager, "random_points", "cube") == "views":
             raise OptionError("--pipeline.model.random-init True starts from splatfacto's cube, so "
                               "--pipeline.datamanager.random-points views would do nothing; pass one of them "
@@ -86,17 +77,3 @@ class HpgsPipeline(VanillaPipeline):
         if self.rounds is not None and self.snapshots is not None:
             callbacks += self.rounds.callbacks(attrs) + self.snapshots.callbacks(attrs)
         return callbacks + self.model.get_training_callbacks(attrs)
-
-
-def upgrade_pipeline_config(config) -> bool:
-    """Turn a config.yml of hpgs-ns 0.1 (a VanillaPipelineConfig, rounds inside the datamanager) into this
-    pipeline's config, in place, so resuming it (`--load-config`) still runs the rounds. True if it changed."""
-    from hpgs_ns.datamanager import ActiveDatamanagerConfig
-
-    pipeline = config.pipeline
-    if type(pipeline) is VanillaPipelineConfig and isinstance(pipeline.datamanager, ActiveDatamanagerConfig):
-        selection = SelectionConfig()
-        take_datamanager_options(pipeline.datamanager, selection, warn=False)
-        config.pipeline = HpgsPipelineConfig(datamanager=pipeline.datamanager, model=pipeline.model, selection=selection)
-        return True
-    return False

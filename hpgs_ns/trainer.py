@@ -32,10 +32,11 @@ from nerfstudio.utils.rich_utils import CONSOLE
 
 from hpgs_ns import schedules
 from hpgs_ns.atomic_write import atomic_path, write_json_atomic
+from hpgs_ns.compat import upgrade_pipeline_config
 from hpgs_ns.errors import OptionError, UserError
-from hpgs_ns.pipeline import upgrade_pipeline_config
+from hpgs_ns.pipeline import HpgsPipelineConfig
 
-# config.yml files of hpgs-ns 0.1 name the scheduler classes here.
+# config.yml files of hpgs-ns 0.1 name the scheduler classes here (the other old-run rules: hpgs_ns.compat).
 FloatExponentialDecaySchedulerConfig = schedules.FloatExponentialDecaySchedulerConfig
 FloatExponentialDecayScheduler = schedules.FloatExponentialDecayScheduler
 
@@ -101,7 +102,7 @@ class HpgsTrainer(Trainer):
     config: HpgsTrainerConfig
 
     def __init__(self, config: HpgsTrainerConfig, local_rank: int = 0, world_size: int = 1) -> None:
-        if upgrade_pipeline_config(config):
+        if upgrade_pipeline_config(config, HpgsPipelineConfig):
             CONSOLE.print("config.yml of hpgs-ns 0.1: its pipeline is now the hpgs pipeline (selection rounds run)")
         follow_run_length(config)  # before set-up builds the schedulers; a resume keeps the total step count
         from unittest import mock

@@ -108,7 +108,7 @@ LAYERS = (
     ("round records", ("hpgs_ns.selection.records", "hpgs_ns.selection.schedule")),
     ("training parts", ("hpgs_ns.model", "hpgs_ns.datamanager", "hpgs_ns.viewer")),
     ("selection loop", ("hpgs_ns.selection",)),
-    ("pipeline", ("hpgs_ns.pipeline",)),
+    ("pipeline", ("hpgs_ns.pipeline", "hpgs_ns.compat")),
     ("trainer", ("hpgs_ns.trainer",)),
     ("method", ("hpgs_ns.method_config", "hpgs_ns.run_config")),
     ("commands", ("hpgs_ns", "hpgs_ns.cli", "hpgs_ns.demo", "hpgs_ns.suggest", "hpgs_ns.bench")),

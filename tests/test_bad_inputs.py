@@ -40,11 +40,8 @@ def parse(args):
 BAD_OPTIONS = [
     (["--pipeline.selection.views-per-round", "0"], "--pipeline.selection.views-per-round 0: must be at least 1",
      "pass 1 or more (--pipeline.selection.max-rounds 0 runs no rounds)"),
-    (["--pipeline.datamanager.views-per-round", "0"], "--pipeline.datamanager.views-per-round 0: must be at least 1",
-     "pass 1 or more"),  # the 0.2 spelling is named as given
     (["--pipeline.selection.select-every", "-5"], "--pipeline.selection.select-every -5: must be >= 0",
      "pass 0 for no periodic rounds"),
-    (["--pipeline.datamanager.select-every", "-5"], "--pipeline.datamanager.select-every -5: must be >= 0", "pass 0"),
     (["--pipeline.selection.select-at", "400", "0"], "--pipeline.selection.select-at 400 0: round steps must be >= 1",
      "drop the steps below 1"),
     (["--pipeline.selection.max-rounds", "-1"], "--pipeline.selection.max-rounds -1: must be >= 0", "pass 0 for no rounds"),
@@ -52,8 +49,6 @@ BAD_OPTIONS = [
      "pass 0 for no snapshots"),
     (["--pipeline.selection.render-short-side", "0"], "--pipeline.selection.render-short-side 0: must be at least 1 pixel",
      "leave it out"),
-    (["--pipeline.datamanager.selection-short-side", "0"],
-     "--pipeline.datamanager.selection-short-side 0: must be at least 1 pixel", "leave it out"),
     (["--pipeline.selection.stop-when-gain-below", "nan"], "--pipeline.selection.stop-when-gain-below nan: must be a finite",
      "leave it out to run every round"),
     (["--pipeline.datamanager.num-initial-views", "0"], "--pipeline.datamanager.num-initial-views 0: must be at least 1",
@@ -69,8 +64,6 @@ BAD_OPTIONS = [
      "pass e.g. 0.1"),
     (["--pipeline.selection.selector", "nosuch"], "--pipeline.selection.selector nosuch: unknown selector",
      "choose one of random, farthest, fisher, hpgs"),
-    (["--pipeline.datamanager.selector", "nosuch"], "--pipeline.datamanager.selector nosuch: unknown selector",
-     "choose one of random"),
     (["nerfstudio-data", "--train-split-fraction", "1"], "nerfstudio-data --train-split-fraction 1.0: must be within (0, 1)",
      "pass e.g. 0.9"),
 ]

@@ -2,35 +2,24 @@
 
 Which views are active at step 0 (and the split) is the datamanager's business; when rounds run, which selector
 scores the withheld views, and what the loop records, is this config's. `setup()` builds the loop
-(`hpgs_ns.selection.rounds.SelectionRounds`).
-
-Up to hpgs-ns 0.2 these options sat on the datamanager (`--pipeline.datamanager.selector`, ...): that spelling
-still works, with a warning (`take_datamanager_options`), and config.yml files of 0.1 and 0.2 are read the same way.
+(`hpgs_ns.selection.rounds.SelectionRounds`). Each registered selector, built-in or another package's, has its
+option group here (`--pipeline.selection.<name>.*`), made from the registry (`selectors.registry.selector_classes`).
+config.yml files of hpgs-ns 0.1 and 0.2 kept these options on the datamanager: `hpgs_ns.compat` reads them.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import MISSING, dataclass, field, fields
+from dataclasses import MISSING, dataclass, field, fields, make_dataclass
 from pathlib import Path
-from typing import Any, Dict, Optional, Tuple, Type
+from typing import Dict, Optional, Tuple, Type
 
 from nerfstudio.configs.base_config import InstantiateConfig
-from nerfstudio.utils.rich_utils import CONSOLE
 
 from hpgs_ns.errors import check_option
 from hpgs_ns.selection.after_add import AfterAddConfig
-from hpgs_ns.selectors import (
-    BlendSelectorConfig,
-    CondorcetSelectorConfig,
-    FarthestSelectorConfig,
-    FisherSelectorConfig,
-    HpgsSelectorConfig,
-    RandomSelectorConfig,
-    SelectorConfig,
-    registry,
-)
-from hpgs_ns.selectors.registry import SelectorName, selector_names
+from hpgs_ns.selectors import SelectorConfig, registry
+from hpgs_ns.selectors.registry import DEFAULT_SELECTOR, SelectorName, option_group, selector_names
 
 
 def _rounds():
@@ -40,11 +29,12 @@ def _rounds():
 
 
 @dataclass
-class SelectionConfig(InstantiateConfig):
-    """When selection rounds run, which selector picks the views, and what the loop records."""
+class SelectionLoopConfig(InstantiateConfig):
+    """When selection rounds run, which selector picks the views, and what the loop records (`SelectionConfig`
+    adds one option group per registered selector)."""
 
     _target: Type = field(default_factory=_rounds)
-    selector: SelectorName = "hpgs"
+    selector: SelectorName = DEFAULT_SELECTOR
     """Which selector picks the next views (default: the paper's human-preference selector). Other packages add
     selectors through the `hpgs_ns.selectors` entry point group."""
     select_every: int = 2000
@@ -55,19 +45,6 @@ class SelectionConfig(InstantiateConfig):
     """Views added per round (greedy batch selection when > 1)."""
     max_rounds: int = 7
     """Rounds before selection stops (HP-GS: 7 additions over 15000 steps)."""
-    # One option group per built-in selector (registry.BUILTIN_SELECTORS); plugins' options come from the registry.
-    random: RandomSelectorConfig = field(default_factory=RandomSelectorConfig)
-    """Options of the `random` selector."""
-    farthest: FarthestSelectorConfig = field(default_factory=FarthestSelectorConfig)
-    """Options of the `farthest` selector."""
-    fisher: FisherSelectorConfig = field(default_factory=FisherSelectorConfig)
-    """Options of the `fisher` selector (FisherRF)."""
-    hpgs: HpgsSelectorConfig = field(default_factory=HpgsSelectorConfig)
-    """Options of the `hpgs` selector (the paper's method)."""
-    condorcet: CondorcetSelectorConfig = field(default_factory=CondorcetSelectorConfig)
-    """Options of the `condorcet` selector (the paper's ablation)."""
-    blend: BlendSelectorConfig = field(default_factory=BlendSelectorConfig)
-    """Options of the `blend` selector (farthest + hpgs, weights fitted on candidate logs)."""
     eval_each_round: bool = False
     """Measure test-view PSNR just before each round (recorded in selected_views.json; used by `hpgs bench`)."""
     stop_when_gain_below: Optional[float] = None
@@ -120,7 +97,7 @@ class SelectionConfig(InstantiateConfig):
         """The options of selector `name` (default: the chosen one): its group above for a built-in one, else the
         registry's defaults."""
         name = self.selector if name is None else name
-        own = getattr(self, name, None)
+        own = getattr(self, option_group(name), None)
         return own if isinstance(own, SelectorConfig) else registry.selector_config(name)
 
     def resume_signature(self, seed: int) -> Dict[str, str]:
@@ -153,44 +130,21 @@ VALUE_RULES = {
     "render_short_side": (lambda v: v >= 1, "must be at least 1 pixel", "leave it out to render at the dataset's resolution"),
 }
 
-# Options that moved from the datamanager to `--pipeline.selection` in 0.3: old name -> new name.
-MOVED_FROM_DATAMANAGER: Dict[str, str] = {
-    **{name: name for name in ("selector", "select_every", "select_at", "views_per_round", "max_rounds",
-                               "eval_each_round", "stop_when_gain_below", "gain_model", "log_candidate_scores",
-                               "snapshot_every", "reset_after_add")},
-    "selection_short_side": "render_short_side",
-}
-MOVED_GROUPS: Tuple[str, ...] = tuple(registry.BUILTIN_SELECTORS)
 
 
-def take_datamanager_options(datamanager: Any, selection: SelectionConfig, warn: bool = True) -> Dict[str, str]:
-    """Move the selection options set on the datamanager (the 0.2 spelling, or a 0.1/0.2 config.yml) into
-    `selection`, leaving the datamanager's copies unset. Returns {old flag: new flag} of what moved; warns once per
-    call when `warn` (a command line or script in the old spelling)."""
-    moved: Dict[str, str] = {}
-    given_as: Dict[str, str] = {}
-    for old, new in MOVED_FROM_DATAMANAGER.items():
-        value = getattr(datamanager, old, None)
-        if value is None:
-            continue
-        setattr(selection, new, value)
-        setattr(datamanager, old, None)
-        moved[f"--pipeline.datamanager.{old.replace('_', '-')}"] = f"--pipeline.selection.{new.replace('_', '-')}"
-        given_as[new] = f"--pipeline.datamanager.{old.replace('_', '-')}"
-    for group in MOVED_GROUPS:
-        value = getattr(datamanager, group, None)
-        # The datamanager keeps a default group (tyro needs one to parse the old flags); only a changed one moves.
-        if isinstance(value, SelectorConfig) and value != type(value)():
-            setattr(selection, group, value)
-            setattr(datamanager, group, type(value)())
-            moved[f"--pipeline.datamanager.{group}.*"] = f"--pipeline.selection.{group}.*"
-    if moved and warn:
-        selection.check_values(given_as)  # the values given in the old spelling, named as given
-        spelled = ", ".join(f"{old} -> {new}" for old, new in moved.items())
-        CONSOLE.print(f"[yellow]deprecated option spelling (hpgs-ns 0.3 moved the selection options): {spelled}",
-                      soft_wrap=True)
-    return moved
+def _option_groups():
+    """(field, config class, default) for every registered selector: an entry point naming an instance of its config
+    (options set) is that instance's copy."""
+    builtin = registry.BUILTIN_SELECTORS
+    return [(option_group(name), cls, field(default_factory=cls if name in builtin else
+                                            (lambda name=name: registry.selector_config(name))))
+            for name, cls in registry.selector_classes().items()]
 
 
-def selection_field_names() -> Tuple[str, ...]:
-    return tuple(f.name for f in fields(SelectionConfig) if f.name != "_target")
+# The loop's options and one group per selector, e.g. `--pipeline.selection.fisher.probes 8`. Made once, when this
+# module is imported: the registry is the one list of selectors, so a new one (built-in or an entry point) needs no
+# edit here. Its name and module are a plain class's, so config.yml files name it as `SelectionConfig`.
+SelectionConfig = make_dataclass(
+    "SelectionConfig", _option_groups(), bases=(SelectionLoopConfig,),
+    namespace={"__module__": __name__, "__doc__": SelectionLoopConfig.__doc__.split(" (`SelectionConfig`")[0] + "."},
+)

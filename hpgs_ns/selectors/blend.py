@@ -11,24 +11,22 @@ the weights that best predict that error, leave one scene out (how well they do:
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from pathlib import Path
-from typing import ClassVar, List, Optional, Tuple, Type
+from typing import ClassVar, List, Tuple, Type
 
 import torch
 
-from hpgs_ns.selectors.base import Selection, SelectionContext, SelectionError, SelectorConfig
+from hpgs_ns.selectors.base import Selection, SelectionContext, SelectionError
 from hpgs_ns.selectors.farthest import nearest_centre_distance
 from hpgs_ns.selectors.hpgs import HpgsSelectorConfig, cosine_distance_to_set
+from hpgs_ns.selectors.preference_features import PreferenceSelectorConfig
 
 
 @dataclass
-class BlendSelectorConfig(SelectorConfig):
+class BlendSelectorConfig(PreferenceSelectorConfig):
     """Weighted sum of farthest's and hpgs's z-scored scores (weights fitted on candidate logs)."""
 
     _target: Type = field(default_factory=lambda: BlendSelector)
-    uses_preference_model: ClassVar[bool] = True
-    code_files: ClassVar[Tuple[str, ...]] = (
-        "selectors/preference_features.py", "preference/model.py", "selectors/farthest.py", "selectors/hpgs.py")
+    code_files: ClassVar[Tuple[str, ...]] = PreferenceSelectorConfig.code_files + ("selectors/farthest.py", "selectors/hpgs.py")
     # A fitted mix of farthest and hpgs, which the log records: logging it too would feed its own fit.
     logged_in_candidate_log: ClassVar[bool] = False
     # Fitted on every logged scene (fox, juice box, gold cape, campus; seed 1 of the FisherRF protocol):
@@ -37,12 +35,6 @@ class BlendSelectorConfig(SelectorConfig):
     """Weight of the z-scored camera-centre distance."""
     hpgs_weight: float = 0.432
     """Weight of the z-scored preference-feature distance."""
-    model: Optional[Path] = None
-    """Preference-model checkpoint for the feature part; default: the model shipped with hpgs_ns."""
-    batch_size: int = 16
-    """Images per model forward."""
-    render_short_side: Optional[int] = None
-    """Short side of the renders fed to the model; default: the model's input size, or the views' own if smaller."""
 
 
 def zscore(x: torch.Tensor) -> torch.Tensor:

@@ -11,30 +11,21 @@ It ignores the training views entirely, which is the paper's argument against it
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from pathlib import Path
-from typing import ClassVar, Optional, Tuple, Type
+from typing import Type
 
 import torch
 
-from hpgs_ns.selectors.base import Selection, SelectionContext, SelectionError, SelectorConfig
-from hpgs_ns.selectors.preference_features import load_preference_model, render_scores
+from hpgs_ns.selectors.base import Selection, SelectionContext, SelectionError
+from hpgs_ns.selectors.preference_features import PreferenceSelectorConfig, load_preference_model, render_scores
 
 
 @dataclass
-class CondorcetSelectorConfig(SelectorConfig):
+class CondorcetSelectorConfig(PreferenceSelectorConfig):
     """Condorcet winner of Bradley-Terry duels between candidates (the one judged worse most often)."""
 
     _target: Type = field(default_factory=lambda: CondorcetSelector)
-    uses_preference_model: ClassVar[bool] = True
-    code_files: ClassVar[Tuple[str, ...]] = ("selectors/preference_features.py", "preference/model.py")
-    model: Optional[Path] = None
-    """Preference-model checkpoint; default: the model shipped with hpgs_ns."""
     max_candidates: int = 0
     """Duel only a random subset of this many candidates (0 = all)."""
-    batch_size: int = 16
-    """Images per model forward."""
-    render_short_side: Optional[int] = None
-    """Short side of the renders fed to the model; default: the model's input size, or the views' own if smaller."""
 
 
 def duel_wins(scores: torch.Tensor) -> torch.Tensor:

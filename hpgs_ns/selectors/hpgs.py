@@ -14,31 +14,22 @@ than a full render followed by a resize), batched in one rasterization call per 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from pathlib import Path
-from typing import ClassVar, List, Literal, Optional, Sequence, Tuple, Type
+from typing import List, Literal, Optional, Sequence, Type
 
 import torch
 
-from hpgs_ns.selectors.base import Selection, SelectionContext, SelectionError, SelectorConfig
-from hpgs_ns.selectors.preference_features import load_preference_model, render_features
+from hpgs_ns.selectors.base import Selection, SelectionContext, SelectionError
+from hpgs_ns.selectors.preference_features import PreferenceSelectorConfig, load_preference_model, render_features
 
 
 @dataclass
-class HpgsSelectorConfig(SelectorConfig):
+class HpgsSelectorConfig(PreferenceSelectorConfig):
     """HP-GS: largest cosine distance from the median preference feature of the active views."""
 
     _target: Type = field(default_factory=lambda: HpgsSelector)
-    uses_preference_model: ClassVar[bool] = True
-    code_files: ClassVar[Tuple[str, ...]] = ("selectors/preference_features.py", "preference/model.py")
-    model: Optional[Path] = None
-    """Preference-model checkpoint (`hpgs train-pref`); default: the cross-scene model shipped with hpgs_ns."""
     aggregate: Literal["median-feature", "median-distance"] = "median-feature"
     """`median-feature`: distance to the median feature (the paper). `median-distance`: median over active views
     of the distance (the authors' code)."""
-    batch_size: int = 16
-    """Images per model forward."""
-    render_short_side: Optional[int] = None
-    """Short side of the renders fed to the model; default: the model's input size, or the views' own if smaller."""
 
 
 class HpgsSelector:

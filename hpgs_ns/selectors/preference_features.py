@@ -1,13 +1,29 @@
-"""Shared by the `hpgs` and `condorcet` selectors: load the preference model, render views, run it in batches."""
+"""Shared by the selectors that score with a preference model (`hpgs`, `condorcet`, `blend`): their options, loading
+the model, rendering views and running it in batches."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Dict, List, Optional, Sequence
+from typing import ClassVar, Dict, List, Optional, Sequence, Tuple
 
 import torch
 
-from hpgs_ns.selectors.base import SelectionContext, SelectionError
+from hpgs_ns.selectors.base import SelectionContext, SelectionError, SelectorConfig
+
+
+@dataclass
+class PreferenceSelectorConfig(SelectorConfig):
+    """The options every preference-model selector has."""
+
+    uses_preference_model: ClassVar[bool] = True
+    code_files: ClassVar[Tuple[str, ...]] = ("selectors/preference_features.py", "preference/model.py")
+    model: Optional[Path] = None
+    """Preference-model checkpoint (`hpgs train-pref`); default: the cross-scene model shipped with hpgs_ns."""
+    batch_size: int = 16
+    """Images per model forward."""
+    render_short_side: Optional[int] = None
+    """Short side of the renders fed to the model; default: the model's input size, or the views' own if smaller."""
 
 DEFAULT_MODEL = Path(__file__).resolve().parent.parent / "assets" / "preference-default.pt"
 

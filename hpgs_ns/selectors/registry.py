@@ -7,8 +7,13 @@ entry point group, so adding one needs no edit of this package; in the plugin's 
     my-selector = "my_package.selector:MySelectorConfig"
 
 The entry point names a `SelectorConfig` subclass (or an instance of one, to set its options): its `setup()`
-returns an object with `select(context) -> Selection` (`hpgs_ns.selectors.base`). Entry points are read when
-asked for, and a plugin's module is imported only when its selector is used.
+returns an object with `select(context) -> Selection` (`hpgs_ns.selectors.base`). Its typed fields become
+`--pipeline.selection.<name>.<option>` flags like a built-in selector's (`selection.config` reads
+`selector_classes` when it is imported); a plugin whose module cannot be imported is still listed, and choosing it
+is the one-line error saying why.
+
+This module is the one list of selectors: the selection config, `hpgs bench`'s defaults and the docs' table read it,
+and a selector's facts are its config class's (`SelectorConfig`'s class variables), read from there.
 """
 
 from __future__ import annotations
@@ -29,6 +34,7 @@ from hpgs_ns.selectors.hpgs import HpgsSelectorConfig
 from hpgs_ns.selectors.random_views import RandomSelectorConfig
 
 ENTRY_POINT_GROUP = "hpgs_ns.selectors"
+DEFAULT_SELECTOR = "hpgs"  # the paper's method
 
 BUILTIN_SELECTORS: Dict[str, Type[SelectorConfig]] = {
     "random": RandomSelectorConfig,
@@ -42,6 +48,23 @@ BUILTIN_SELECTORS: Dict[str, Type[SelectorConfig]] = {
 
 def _entry_points() -> Dict[str, object]:
     return {ep.name: ep for ep in entry_points(group=ENTRY_POINT_GROUP) if ep.name not in BUILTIN_SELECTORS}
+
+
+def option_group(name: str) -> str:
+    """The field of `SelectionConfig` holding selector `name`'s options (`my-selector` -> `my_selector`)."""
+    return name.replace("-", "_")
+
+
+def selector_classes() -> Dict[str, Type[SelectorConfig]]:
+    """Every selector whose config class can be had: the built-in ones in order, then other packages' (imported
+    now; one that fails to import is left out here and fails with one line when chosen)."""
+    classes: Dict[str, Type[SelectorConfig]] = dict(BUILTIN_SELECTORS)
+    for name in sorted(_entry_points()):
+        try:
+            classes[name] = type(selector_config(name))
+        except SelectionError:
+            continue
+    return classes
 
 
 def selector_names() -> List[str]:

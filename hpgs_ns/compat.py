@@ -1,0 +1,69 @@
+"""Runs saved by hpgs-ns 0.1 and 0.2, read by 0.4: every compatibility rule in one place.
+
+0.1 saved a VanillaPipelineConfig with the selection loop's options on the datamanager; 0.2 the hpgs pipeline with
+those options still on the datamanager (`--pipeline.datamanager.selector`, ...). 0.3 moved them to
+`--pipeline.selection.*`; 0.4 dropped the old command-line spelling and keeps reading the old config.yml files here,
+so `ns-eval`, `ns-viewer` and `--load-config` open old runs. (config.yml files of 0.1 also name two scheduler
+classes in `hpgs_ns.trainer`, which YAML looks up there: the trainer re-exports them.)
+"""
+
+from __future__ import annotations
+
+from typing import Any, Dict, Tuple
+
+# Options that moved from the datamanager to `--pipeline.selection` in 0.3: old name -> new name.
+MOVED_FROM_DATAMANAGER: Dict[str, str] = {
+    **{name: name for name in ("selector", "select_every", "select_at", "views_per_round", "max_rounds",
+                               "eval_each_round", "stop_when_gain_below", "gain_model", "log_candidate_scores",
+                               "snapshot_every", "reset_after_add")},
+    "selection_short_side": "render_short_side",
+}
+# The option groups of the selectors 0.2 had (each on the datamanager then).
+MOVED_GROUPS: Tuple[str, ...] = ("random", "farthest", "fisher", "hpgs", "condorcet", "blend")
+
+
+def take_datamanager_options(datamanager: Any, selection: Any) -> Dict[str, str]:
+    """Move the selection options an old config.yml set on its datamanager into `selection`, and drop them from the
+    datamanager. Returns {old name: new name} of what moved."""
+    moved: Dict[str, str] = {}
+    state = getattr(datamanager, "__dict__", {})
+    for old, new in MOVED_FROM_DATAMANAGER.items():
+        value = state.pop(old, None)
+        if value is not None:
+            setattr(selection, new, value)
+            moved[old] = new
+    for group in MOVED_GROUPS:
+        value = state.pop(group, None)
+        # 0.2 saved every group; only one changed from its defaults carries options.
+        if value is not None and value != type(value)():
+            setattr(selection, group, value)
+            moved[group] = group
+    return moved
+
+
+def read_pipeline_state(config: Any, state: dict) -> None:
+    """`HpgsPipelineConfig.__setstate__`: a 0.2 config.yml has no `selection`; its options are the datamanager's."""
+    from hpgs_ns.selection.config import SelectionConfig
+
+    config.__dict__.update(state)
+    if "selection" not in state:
+        config.selection = SelectionConfig()
+    take_datamanager_options(config.datamanager, config.selection)
+
+
+def upgrade_pipeline_config(config: Any, pipeline_config: type) -> bool:
+    """Turn a config.yml of hpgs-ns 0.1 (a VanillaPipelineConfig, rounds inside the datamanager) into
+    `pipeline_config` (the hpgs pipeline's), in place, so resuming it (`--load-config`) still runs the rounds. True if
+    it changed."""
+    from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
+
+    from hpgs_ns.datamanager import ActiveDatamanagerConfig
+    from hpgs_ns.selection.config import SelectionConfig
+
+    pipeline = config.pipeline
+    if type(pipeline) is VanillaPipelineConfig and isinstance(pipeline.datamanager, ActiveDatamanagerConfig):
+        selection = SelectionConfig()
+        take_datamanager_options(pipeline.datamanager, selection)
+        config.pipeline = pipeline_config(datamanager=pipeline.datamanager, model=pipeline.model, selection=selection)
+        return True
+    return False
