@@ -6,4 +6,4 @@ model); rendering in `cpu_raster` and `render/`; `scenes/` (synthetic scenes, CO
 benchmark). Importing the package does nothing else.
 """
 
-__version__ = "0.3.0"
+__version__ = "0.4.0"
