@@ -82,7 +82,7 @@ class TriangulationSettings:
 
 
 COLMAP_DEFAULTS = TriangulationSettings()
-# Chosen on the tuning scenes (benchmarks/triangulation_yield.py, docs/active-training.md "Triangulation yield"):
+# Chosen on the tuning scenes (benchmarks/triangulation_yield.py, docs/lab/triangulation-yield.md):
 # matches checked against the known poses, a looser ratio test and 5 inliers a pair: 665 points over tune6 at 4 and 8
 # FisherRF views against 360 for COLMAP_DEFAULTS, medians within 1% of the extent, the same seconds a call.
 KNOWN_POSES = TriangulationSettings(max_ratio=0.9, verification="poses", min_num_inliers=5)
