@@ -30,8 +30,8 @@ class Demo:
 
     out: Path = Path("outputs/demo")
     """Folder for the scene and the run."""
-    selector: str = "hpgs"
-    """Selector to use (see `ns-train hpgs --help`)."""
+    selector: Optional[str] = None
+    """Selector to use (see `ns-train hpgs --help`); default: `ns-train hpgs`'s."""
     layout: str = "ring"
     """Synthetic scene layout."""
     steps: Optional[int] = None
@@ -68,7 +68,7 @@ class Demo:
         every = 2000 if gpu and not self.steps else (100 if not self.steps else max(steps // 8, 1))
         rounds = self.max_rounds if self.max_rounds is not None else (7 if gpu else 2)
         per_round = self.views_per_round or (1 if gpu else 3)
-        run_name = f"{self.selector}-seed{self.seed}"
+        run_name = f"{self.selector or 'default'}-seed{self.seed}"
         cmd = train_command(scene, self.out, run_name, self.selector, steps, every, self.num_initial_views, self.seed,
                             self.rasterizer, per_round, rounds)
         # On the CPU one intra-op thread: the pure-PyTorch rasterizer runs several times faster than with two on 2
@@ -86,7 +86,7 @@ class Demo:
         selected = SelectionLog.read(config.parent)
         print(
             f"test PSNR {metrics['psnr']:.2f} dB  SSIM {metrics['ssim']:.3f}  LPIPS {metrics['lpips']:.3f}  "
-            f"({len(selected.active)} views, {len(selected.chosen)} added by {self.selector} in {len(selected.rounds)} rounds, "
+            f"({len(selected.active)} views, {len(selected.chosen)} added by {selected.selector} in {len(selected.rounds)} rounds, "
             f"{minutes:.1f} min)"
         )
         print(f"run: {config.parent}")
@@ -94,7 +94,7 @@ class Demo:
 
 
 def train_command(
-    scene: Path, out: Path, run_name: str, selector: str, steps: int, every: int, initial: int, seed: int,
+    scene: Path, out: Path, run_name: str, selector: Optional[str], steps: int, every: int, initial: int, seed: int,
     rasterizer: str, views_per_round: int = 1, max_rounds: int = 7,
 ) -> List[str]:
     """The `ns-train hpgs` command line the demo runs (also printed, so users can adapt it): splatfacto's
@@ -102,8 +102,8 @@ def train_command(
     return ns_train_command(
         scene, out, "runs", run_name, steps,
         datamanager={"num-initial-views": initial, "seed": seed},
-        selection={"selector": selector, "select-every": every, "views-per-round": views_per_round,
-                   "max-rounds": max_rounds},
+        selection={**({"selector": selector} if selector else {}), "select-every": every,
+                   "views-per-round": views_per_round, "max-rounds": max_rounds},
         model={
             "rasterizer": rasterizer,
             "warmup-length": min(500, steps // 6),

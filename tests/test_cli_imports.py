@@ -98,4 +98,4 @@ def test_preference_recipe_names_are_the_model_s():
     from hpgs_ns.preference import model, recipe
 
     assert model.BackboneName is recipe.BackboneName and model.FeatureTransform is recipe.FeatureTransform
-    assert model.CheckpointError is recipe.CheckpointError
+    assert model.PreferenceModelError is recipe.PreferenceModelError

@@ -336,7 +336,7 @@ def test_damaged_checkpoints_read_or_fail_in_one_line(tmp_path):
 
 def test_preference_models_with_retyped_fields_or_damaged_bytes_load_or_fail_in_one_line(light_preference_model, tmp_path):
     from hpgs_ns.preference.model import PreferenceModel
-    from hpgs_ns.preference.recipe import CheckpointError
+    from hpgs_ns.preference.recipe import PreferenceModelError
 
     original = light_preference_model.read_bytes()
     checkpoint = torch.load(light_preference_model, map_location="cpu", weights_only=True)
@@ -353,6 +353,6 @@ def test_preference_models_with_retyped_fields_or_damaged_bytes_load_or_fail_in_
     @given(st.one_of(st.tuples(st.sampled_from(fields), OTHER_VALUES).map(retype), damaged(original)))
     def check(data):
         path.write_bytes(data)
-        reads_or_one_line(lambda: PreferenceModel.load(path), path, CheckpointError)
+        reads_or_one_line(lambda: PreferenceModel.load(path), path, PreferenceModelError)
 
     check()

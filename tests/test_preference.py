@@ -242,7 +242,7 @@ def test_wrong_checkpoints_give_one_line_errors(tmp_path, blur_model, blur_data,
     cases["future.pt"] = "version 99"
     cases["absent.pt"] = "no such preference-model checkpoint"
     for name, expect in cases.items():
-        with pytest.raises(pm.CheckpointError) as info:
+        with pytest.raises(pm.PreferenceModelError) as info:
             pm.PreferenceModel.load(tmp_path / name)
         assert expect in str(info.value) and "\n" not in str(info.value) and name in str(info.value)
     with pytest.raises(UserError, match=r"^hpgs eval-pref: .*mismatch\.pt.*does not match the vgg16 backbone"):
@@ -307,7 +307,7 @@ def test_a_checkpoint_from_before_transforms_reads_as_none_and_a_bad_pairing_is_
     torch.save(ckpt, tmp_path / "old.pt")
     assert pm.PreferenceModel.load(tmp_path / "old.pt").feature_transform == "none"
     torch.save({**ckpt, "feature_transform": "cube-root"}, tmp_path / "odd.pt")
-    with pytest.raises(pm.CheckpointError, match="odd.pt: unknown feature transform 'cube-root'"):
+    with pytest.raises(pm.PreferenceModelError, match="odd.pt: unknown feature transform 'cube-root'"):
         pm.PreferenceModel.load(tmp_path / "odd.pt")
     (tmp_path / "p.csv").write_text("Image_1,Image_2,Human Preference\na.png,b.png,1\nc.png,d.png,0\n")
     with pytest.raises(UserError, match=r"^hpgs train-pref: .*--feature-transform none") as info:

@@ -26,7 +26,7 @@ from hpgs_ns.bench.suites import SuiteError, load_suite
 from hpgs_ns.dataparser import HpgsNerfstudioDataParserConfig, MipNerf360DataParserConfig, SceneDataError
 from hpgs_ns.errors import UserError, print_user_errors
 from hpgs_ns.preference.model import PreferenceModel
-from hpgs_ns.preference.recipe import CheckpointError as PreferenceCheckpointError
+from hpgs_ns.preference.recipe import PreferenceModelError
 from hpgs_ns.run_config import RunConfigError, read_run_config
 from hpgs_ns.scenes.colmap_model import ColmapModelError, read_model_file
 from hpgs_ns.scenes.synthetic import make_scene
@@ -456,7 +456,7 @@ def test_a_preference_model_with_wrong_typed_fields_is_one_line(tmp_path, light_
     change(checkpoint)
     path = tmp_path / "model.pt"
     torch.save(checkpoint, path)
-    with pytest.raises(PreferenceCheckpointError) as info:
+    with pytest.raises(PreferenceModelError) as info:
         PreferenceModel.load(path)
     assert one_line(info.value).startswith(f"{path}: ") and says in str(info.value)
 

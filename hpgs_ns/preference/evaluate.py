@@ -13,7 +13,7 @@ from rich.progress import track
 
 from hpgs_ns.errors import UserError
 from hpgs_ns.preference.pairs import Pair, PairsError, load_image, read_usable_pairs
-from hpgs_ns.preference.recipe import CheckpointError
+from hpgs_ns.preference.recipe import PreferenceModelError
 
 if TYPE_CHECKING:  # torch is imported where used: `hpgs eval-pref --help` imports this module
     import torch
@@ -114,7 +114,7 @@ class EvalPref:
             model = PreferenceModel.load(self.model, self.device)
             pairs = read_usable_pairs(self.pairs)
             result = evaluate_pairs(model, pairs, self.batch_size, progress=not self.json)
-        except (CheckpointError, PairsError) as err:
+        except (PreferenceModelError, PairsError) as err:
             raise UserError(f"hpgs eval-pref: {err}") from None
         if result["pairs"] == 0:
             raise UserError(f"hpgs eval-pref: no labelled, unskipped pairs in {', '.join(map(str, self.pairs))}; "

@@ -48,7 +48,7 @@ from typing_extensions import Annotated
 from hpgs_ns.atomic_write import write_csv_atomic
 from hpgs_ns.errors import UserError
 from hpgs_ns.preference.pairs import COLUMNS, SKIPPED, PairsError, csv_errors, pairs_reader, parse_flag
-from hpgs_ns.preference.recipe import CheckpointError  # not .model: `hpgs label --help` needs no torch
+from hpgs_ns.preference.recipe import PreferenceModelError  # not .model: `hpgs label --help` needs no torch
 
 PAGE = Path(__file__).resolve().parent / "static" / "label.html"
 LABEL, IMAGE_1, IMAGE_2 = COLUMNS[2], COLUMNS[0], COLUMNS[1]
@@ -480,7 +480,7 @@ class Label:
                 if self.model is None:
                     raise PairsError("--order uncertain needs --model CHECKPOINT (from `hpgs train-pref`)")
                 order_by_uncertainty(book, self.model)
-        except (PairsError, CheckpointError) as err:
+        except (PairsError, PreferenceModelError) as err:
             raise UserError(f"hpgs label: {err}") from None
         server = open_server(self.port, book)
         url = f"http://127.0.0.1:{server.server_address[1]}/"

@@ -39,7 +39,7 @@ from torch import nn
 from hpgs_ns import offline_weights as ow
 from hpgs_ns.atomic_write import atomic_path
 from hpgs_ns.errors import UserError
-from hpgs_ns.preference.recipe import BackboneName, CheckpointError, FeatureTransform
+from hpgs_ns.preference.recipe import BackboneName, FeatureTransform, PreferenceModelError
 
 FORMAT = "hpgs-preference-model"
 VERSION = 1
@@ -306,41 +306,41 @@ class PreferenceModel(nn.Module):
 
     @classmethod
     def load(cls, path: Path, device: torch.device | str = "cpu") -> PreferenceModel:
-        """Rebuild a model saved by `save`; CheckpointError (one line) if it is not one or does not fit."""
+        """Rebuild a model saved by `save`; PreferenceModelError (one line) if it is not one or does not fit."""
         path = Path(path)
         if not path.is_file():
-            raise CheckpointError(f"{path}: no such preference-model checkpoint; train one with `hpgs train-pref`")
+            raise PreferenceModelError(f"{path}: no such preference-model checkpoint; train one with `hpgs train-pref`")
         try:
             ckpt = torch.load(path, map_location="cpu", weights_only=True)
         except Exception as err:
-            raise CheckpointError(f"{path}: not a readable checkpoint ({type(err).__name__}); "
+            raise PreferenceModelError(f"{path}: not a readable checkpoint ({type(err).__name__}); "
                                   "retrain with `hpgs train-pref`") from None
         if not isinstance(ckpt, dict) or ckpt.get("format") != FORMAT:
-            raise CheckpointError(f"{path}: not an hpgs preference-model checkpoint; train one with `hpgs train-pref`")
+            raise PreferenceModelError(f"{path}: not an hpgs preference-model checkpoint; train one with `hpgs train-pref`")
         if ckpt.get("version") != VERSION:
-            raise CheckpointError(f"{path}: checkpoint version {ckpt.get('version')} but this code reads {VERSION}; "
+            raise PreferenceModelError(f"{path}: checkpoint version {ckpt.get('version')} but this code reads {VERSION}; "
                                   "retrain with `hpgs train-pref`")
         name = ckpt.get("backbone")
         if name not in BACKBONES:
-            raise CheckpointError(f"{path}: unknown backbone {name!r}; expected one of {', '.join(BACKBONES)}")
+            raise PreferenceModelError(f"{path}: unknown backbone {name!r}; expected one of {', '.join(BACKBONES)}")
         trained_backbone = ckpt.get("backbone_state")
         # A trained backbone is restored from the checkpoint, so its pretrained weights need not be present.
         transform = ckpt.get("feature_transform", "none")  # absent in checkpoints made before transforms existed
         if transform not in FEATURE_TRANSFORMS:
-            raise CheckpointError(f"{path}: unknown feature transform {transform!r}; expected one of "
+            raise PreferenceModelError(f"{path}: unknown feature transform {transform!r}; expected one of "
                                   f"{', '.join(FEATURE_TRANSFORMS)} (made by a newer hpgs_ns? upgrade it)")
         try:
             size = ckpt["input_recipe"]["resize_short_side"]
             if isinstance(size, bool) or not isinstance(size, int) or size < 1 or not isinstance(ckpt["pretrained"], bool):
                 raise TypeError(f"input size {size!r}, pretrained {ckpt['pretrained']!r}")
         except (KeyError, TypeError) as err:
-            raise CheckpointError(f"{path}: not an hpgs preference-model checkpoint (its recipe: {type(err).__name__}: "
+            raise PreferenceModelError(f"{path}: not an hpgs preference-model checkpoint (its recipe: {type(err).__name__}: "
                                   f"{err}); retrain with `hpgs train-pref`") from None
         model = cls(name, pretrained=ckpt["pretrained"] and trained_backbone is None, input_size=size,
                     feature_transform=transform)
         model.pretrained = ckpt["pretrained"]
         if ckpt.get("feature_dim") != model.feature_dim:
-            raise CheckpointError(f"{path}: feature size {ckpt.get('feature_dim')} does not match the {name} "
+            raise PreferenceModelError(f"{path}: feature size {ckpt.get('feature_dim')} does not match the {name} "
                                   f"backbone's {model.feature_dim}; retrain with `hpgs train-pref`")
         try:
             model.head.load_state_dict(ckpt["head"])
@@ -350,11 +350,11 @@ class PreferenceModel(nn.Module):
                 model.backbone.load_state_dict(trained_backbone)
         except (RuntimeError, KeyError, TypeError, AttributeError, ValueError) as err:
             first = str(err).strip().splitlines()[0][:160] if str(err).strip() else type(err).__name__
-            raise CheckpointError(f"{path}: weights do not fit the {name} model ({first}); "
+            raise PreferenceModelError(f"{path}: weights do not fit the {name} model ({first}); "
                                   "retrain with `hpgs train-pref`") from None
         meta = ckpt.get("meta") or {}
         if not isinstance(meta, dict):
-            raise CheckpointError(f"{path}: not an hpgs preference-model checkpoint (meta is a {type(meta).__name__}); "
+            raise PreferenceModelError(f"{path}: not an hpgs preference-model checkpoint (meta is a {type(meta).__name__}); "
                                   "retrain with `hpgs train-pref`")
         model.meta = dict(meta)
         model.requires_grad_(False)

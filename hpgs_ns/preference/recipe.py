@@ -2,7 +2,7 @@
 options of `hpgs train-pref`) and the checkpoint error `hpgs label` and `hpgs eval-pref` catch.
 
 `model` defines the model itself and re-exports these, so `hpgs_ns.preference.model.BackboneName` and
-`model.CheckpointError` are the same objects; they live here so that `hpgs train-pref --help` and `hpgs label
+`model.PreferenceModelError` are the same objects; they live here so that `hpgs train-pref --help` and `hpgs label
 --help` import no torch.
 """
 
@@ -17,5 +17,5 @@ BackboneName = Literal["alexnet", "vgg16", "efficientnet-lite0", "resnet34", "al
 FeatureTransform = Literal["none", "sqrt-l2"]
 
 
-class CheckpointError(UserError, ValueError):
+class PreferenceModelError(UserError, ValueError):
     """A preference-model checkpoint is missing, corrupt or does not match this code (one-line message)."""

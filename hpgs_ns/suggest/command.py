@@ -86,6 +86,7 @@ def load_run(config_path: Path) -> Run:
     from hpgs_ns.dataparser import view_name
     from hpgs_ns.model import HpgsSplatfactoModelConfig
     from hpgs_ns.run_config import RunConfigError, read_run_config
+    from hpgs_ns.selectors.registry import DEFAULT_SELECTOR
 
     config_path = Path(config_path)
     try:
@@ -126,7 +127,8 @@ def load_run(config_path: Path) -> Run:
     names = list(getattr(dm, "image_names", None) or [view_name(p, root) for p in dm.train_dataset.image_filenames])
     trained = sorted(getattr(dm, "active", range(len(dm.train_dataset))))
     selection = getattr(config.pipeline, "selection", None)  # an hpgs run's selection options (None: splatfacto)
-    return Run(config, pipeline, config_path.parent, list(trained), names, selection.selector if selection else "hpgs")
+    return Run(config, pipeline, config_path.parent, list(trained), names,
+               selection.selector if selection else DEFAULT_SELECTOR)
 
 
 def candidate_poses(run: Run, args: Suggest) -> Tuple[torch.Tensor, List[float], cand.Layout]:
