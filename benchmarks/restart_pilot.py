@@ -2,7 +2,7 @@
 
 Reads `benchmarks/results/schedule-pilot/<scene>-<start>/<variant>/seed<k>.json` (variants `follow`: no restart,
 `restart-8-16`, `finalset-follow`: the same final views from step 0), prints the table and the paired gains
-(`hpgs_ns.bench.stats`: mean of per-scene means, hierarchical bootstrap over scenes), and writes them as JSON.
+(`hpgs_lab.stats`: mean of per-scene means, hierarchical bootstrap over scenes), and writes them as JSON.
 
     python benchmarks/restart_pilot.py [--out benchmarks/results/schedule-pilot/restart_pilot.json]
 """
@@ -14,8 +14,8 @@ import json
 from pathlib import Path
 from types import SimpleNamespace
 
+from hpgs_lab import stats
 from hpgs_ns.atomic_write import write_json_atomic
-from hpgs_ns.bench import stats
 
 ROOT = Path("benchmarks/results/schedule-pilot")
 VARIANTS = ("follow", "restart-8-16", "finalset-follow")

@@ -111,7 +111,7 @@ LAYERS = (
     ("pipeline", ("hpgs_ns.pipeline",)),
     ("trainer", ("hpgs_ns.trainer",)),
     ("method", ("hpgs_ns.method_config", "hpgs_ns.run_config")),
-    ("commands", ("hpgs_ns", "hpgs_ns.cli", "hpgs_ns.demo", "hpgs_ns.suggest", "hpgs_ns.bench")),
+    ("commands", ("hpgs_ns", "hpgs_ns.cli", "hpgs_ns.demo", "hpgs_ns.suggest", "hpgs_lab")),
 )
 
 
@@ -131,4 +131,4 @@ def test_no_module_imports_one_meant_to_sit_above_it():
 
 def test_the_layer_check_sees_an_upward_import():
     assert layer("hpgs_ns.selection.records") < layer("hpgs_ns.datamanager") < layer("hpgs_ns.selection.rounds")
-    assert layer("hpgs_ns.render.pair_render") < layer("hpgs_ns.selectors.fisher") < layer("hpgs_ns.bench.runs")
+    assert layer("hpgs_ns.render.pair_render") < layer("hpgs_ns.selectors.fisher") < layer("hpgs_lab.runs")

@@ -13,13 +13,13 @@ from pathlib import Path
 import pytest
 from test_bench_results import make_result
 
-from hpgs_ns.bench.names import FINAL_SET
-from hpgs_ns.bench.protocols import fisherrf_schedule
-from hpgs_ns.bench.report import device_counts, load_results, markdown_table, schedule_cost_table, work_table, write_report
-from hpgs_ns.bench.report.plots import camera_centres, camera_map
-from hpgs_ns.bench.results import Provenance, RunResult, SourceRun, command_options, data_from_command, load_final_sets, start_label
-from hpgs_ns.bench.runs import Bench, Job, resolve_scenes, run_settings, summed_work, train_args
-from hpgs_ns.bench.suites import scene_from_folder
+from hpgs_lab.names import FINAL_SET
+from hpgs_lab.protocols import fisherrf_schedule
+from hpgs_lab.report import device_counts, load_results, markdown_table, schedule_cost_table, work_table, write_report
+from hpgs_lab.report.plots import camera_centres, camera_map
+from hpgs_lab.results import Provenance, RunResult, SourceRun, command_options, data_from_command, load_final_sets, start_label
+from hpgs_lab.runs import Bench, Job, resolve_scenes, run_settings, summed_work, train_args
+from hpgs_lab.suites import scene_from_folder
 from hpgs_ns.errors import UserError
 from hpgs_ns.ns_train import SELECTION_PREFIX
 
@@ -218,7 +218,7 @@ def test_table_means_and_spreads_over_seeds():
 
 
 def test_the_scenes_table_says_which_start_each_scenes_runs_used():
-    from hpgs_ns.bench.report.tables import scenes_table
+    from hpgs_lab.report.tables import scenes_table
 
     def older(scene, command):  # a run from before `seed_points` was recorded: its command tells
         return dataclasses.replace(make_result(scene, seed=2), provenance=Provenance(command=command))

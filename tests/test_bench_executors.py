@@ -17,10 +17,10 @@ from pathlib import Path
 
 import pytest
 
-from hpgs_ns.bench.executors import ExecutorConfig, LocalExecutor, RayExecutor, SlurmExecutor
-from hpgs_ns.bench.report import load_results, markdown_table
-from hpgs_ns.bench.results import RunResult
-from hpgs_ns.bench.runs import Bench
+from hpgs_lab.executors import ExecutorConfig, LocalExecutor, RayExecutor, SlurmExecutor
+from hpgs_lab.report import load_results, markdown_table
+from hpgs_lab.results import RunResult
+from hpgs_lab.runs import Bench
 from hpgs_ns.errors import UserError
 
 REPO = Path(__file__).resolve().parent.parent
@@ -83,7 +83,7 @@ def test_missing_packages_say_how_to_install(monkeypatch):
 
 
 def test_local_executor_pins_one_run_per_gpu(monkeypatch):
-    monkeypatch.setattr("hpgs_ns.bench.executors.visible_gpus", lambda: ["3", "5"])
+    monkeypatch.setattr("hpgs_lab.executors.visible_gpus", lambda: ["3", "5"])
     lock, busy, seen = threading.Lock(), set(), []
 
     def fake_run(item, extra_env):

@@ -16,10 +16,10 @@ from pathlib import Path
 
 import pytest
 
-from hpgs_ns.bench import mps as cuda_mps
-from hpgs_ns.bench.executors import ExecutorConfig, LocalExecutor, run_together
-from hpgs_ns.bench.report import load_results
-from hpgs_ns.bench.runs import Bench, TrainingFailed
+from hpgs_lab import mps as cuda_mps
+from hpgs_lab.executors import ExecutorConfig, LocalExecutor, run_together
+from hpgs_lab.report import load_results
+from hpgs_lab.runs import Bench, TrainingFailed
 from hpgs_ns.errors import UserError
 
 REPO = Path(__file__).resolve().parent.parent
@@ -156,7 +156,7 @@ def test_a_slurm_job_starts_and_quits_its_own_daemon(fake_mps):
 def test_runs_ended_by_a_gpu_fault_under_mps_run_again_once(fake_mps, tiny_scene, tmp_path, monkeypatch, capsys):
     from test_bench_results import make_result
 
-    from hpgs_ns.bench import runs
+    from hpgs_lab import runs
 
     tries: dict = {}
 
@@ -193,7 +193,7 @@ def test_a_real_sweep_records_mps_as_observed(fake_mps, tiny_scene, tmp_path):
 
 
 def test_the_default_runs_per_gpu_is_12_under_mps_and_4_without(fake_mps, tmp_path, monkeypatch):
-    from hpgs_ns.bench.executors import runs_per_gpu
+    from hpgs_lab.executors import runs_per_gpu
 
     assert runs_per_gpu(ExecutorConfig()) == 12  # local, auto, the binary found
     assert runs_per_gpu(ExecutorConfig(mps="off")) == 4

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from hpgs_ns.bench.results import (
+from hpgs_lab.results import (
     VERSION,
     Metrics,
     Provenance,

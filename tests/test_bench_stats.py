@@ -1,4 +1,4 @@
-"""`hpgs_ns.bench.stats`: paired gains, hierarchical bootstrap, sign-flip test, Holm, verdicts, tables.
+"""`hpgs_lab.stats`: paired gains, hierarchical bootstrap, sign-flip test, Holm, verdicts, tables.
 
 Known cases with numbers worked out by hand: identical runs, a constant shift, a gain on one scene only.
 """
@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 from test_bench_results import make_result
 
-from hpgs_ns.bench.results import RunResult
-from hpgs_ns.bench.stats import (
+from hpgs_lab.results import RunResult
+from hpgs_lab.stats import (
     compare,
     comparison_table,
     hierarchical_bootstrap,

@@ -15,9 +15,9 @@ import pytest
 from conftest import REPO, require_shared
 from test_bench_results import make_result
 
-from hpgs_ns.bench import provenance
-from hpgs_ns.bench.executors import ExecutorConfig, LocalExecutor, SlurmExecutor, ray_gpus_per_run, runs_per_device
-from hpgs_ns.bench.report import (
+from hpgs_lab import provenance
+from hpgs_lab.executors import ExecutorConfig, LocalExecutor, SlurmExecutor, ray_gpus_per_run, runs_per_device
+from hpgs_lab.report import (
     comparison_plan,
     markdown_table,
     noise_table,
@@ -25,8 +25,8 @@ from hpgs_ns.bench.report import (
     throughput_table,
     write_report,
 )
-from hpgs_ns.bench.runs import Bench, out_of_memory_hint, run_settings
-from hpgs_ns.bench.suites import Scene, SuiteError, load_suite, scene_from_folder
+from hpgs_lab.runs import Bench, out_of_memory_hint, run_settings
+from hpgs_lab.suites import Scene, SuiteError, load_suite, scene_from_folder
 from hpgs_ns.errors import UserError
 from hpgs_ns.ns_train import SELECTION_PREFIX
 
@@ -87,7 +87,7 @@ def test_jobs_run_seed_by_seed_with_repeats_and_one_reference_seed(tmp_path):
 
 
 def test_runs_per_gpu_packs_each_gpu(monkeypatch):
-    monkeypatch.setattr("hpgs_ns.bench.executors.visible_gpus", lambda: ["3", "5"])
+    monkeypatch.setattr("hpgs_lab.executors.visible_gpus", lambda: ["3", "5"])
     lock, busy, peak = threading.Lock(), {}, {}
 
     def fake_run(item, env):
@@ -110,7 +110,7 @@ def test_runs_per_gpu_packs_each_gpu(monkeypatch):
 
 
 def test_without_a_gpu_runs_go_one_at_a_time(monkeypatch):
-    monkeypatch.setattr("hpgs_ns.bench.executors.visible_gpus", lambda: [])
+    monkeypatch.setattr("hpgs_lab.executors.visible_gpus", lambda: [])
     calls = []
     done = list(LocalExecutor(ExecutorConfig()).map(lambda item, env: calls.append(env) or item, range(3)))
     assert [d.value for d in done] == [0, 1, 2] and calls == [{}, {}, {}]  # in-process, in order
@@ -379,7 +379,7 @@ def test_a_folder_scene_is_named_after_its_folder(tiny_scene):
 
 @pytest.mark.shipped_model
 def test_per_scene_preference_models_are_used_and_checked(tmp_path):
-    from hpgs_ns.bench.runs import train_args
+    from hpgs_lab.runs import train_args
 
     scene = tmp_path / "bonsai"  # its renders trained the shipped default
     (scene / "sparse" / "0").mkdir(parents=True)
@@ -413,7 +413,7 @@ def test_per_scene_preference_models_are_used_and_checked(tmp_path):
 
 @pytest.mark.shipped_model
 def test_a_suite_scene_the_default_model_saw_is_named_unless_per_scene_models_are_given(tmp_path):
-    from hpgs_ns.bench.runs import default_model_scenes
+    from hpgs_lab.runs import default_model_scenes
 
     scenes = [tmp_path / "bonsai", tmp_path / "kitchen"]  # bonsai's renders trained the shipped default
     for scene in scenes:
@@ -438,7 +438,7 @@ def test_the_leave_one_scene_out_models_never_saw_their_scene():
 
 
 def test_per_scene_blend_weights_are_passed_and_recorded(tmp_path):
-    from hpgs_ns.bench.runs import train_args
+    from hpgs_lab.runs import train_args
 
     scenes = [tmp_path / "garden", tmp_path / "other"]
     for scene in scenes:

@@ -69,7 +69,7 @@ def test_bench_keeps_a_runs_log_gzipped_and_the_analysis_reads_it(tmp_path):
     sys.path.insert(0, str(REPO / "benchmarks"))
     from candidate_scores import load_rounds
 
-    from hpgs_ns.bench.runs import keep_candidate_log
+    from hpgs_lab.runs import keep_candidate_log
 
     log = tmp_path / "run" / "candidate_scores.jsonl"
     log.parent.mkdir()

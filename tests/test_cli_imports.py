@@ -87,7 +87,7 @@ def test_top_level_help_lists_every_command_with_its_docstring_summary():
 
 def test_bench_default_selectors_are_the_registry_built_ins():
     """bench.protocols writes the built-in selector names out (importing the registry loads torch)."""
-    from hpgs_ns.bench.protocols import DEFAULT_SELECTORS
+    from hpgs_lab.protocols import DEFAULT_SELECTORS
     from hpgs_ns.selectors.registry import BUILTIN_SELECTORS
 
     assert DEFAULT_SELECTORS == tuple(BUILTIN_SELECTORS)

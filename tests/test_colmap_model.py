@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from nerfstudio.data.utils import colmap_parsing_utils as colmap_utils
 
-from hpgs_ns.bench.stress import PoseNoise, StressConfig, perturbed_copy, split_names
+from hpgs_lab.stress import PoseNoise, StressConfig, perturbed_copy, split_names
 from hpgs_ns.scenes.colmap_model import model_file, read_images, read_points3D, write_images
 
 

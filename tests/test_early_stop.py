@@ -11,8 +11,8 @@ import pytest
 from conftest import run_training, short_config
 from test_bench_results import make_result
 
-from hpgs_ns.bench.gain_fit import early_stop_curve, fit_gain_model, round_gains, view_gains
-from hpgs_ns.bench.results import RoundPsnr
+from hpgs_lab.gain_fit import early_stop_curve, fit_gain_model, round_gains, view_gains
+from hpgs_lab.results import RoundPsnr
 from hpgs_ns.errors import UserError
 from hpgs_ns.selection.early_stop import GainModel
 

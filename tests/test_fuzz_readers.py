@@ -221,7 +221,7 @@ path = "synthetic:grid"
 
 
 def test_suites_of_another_shape_or_damaged_read_or_fail_in_one_line(tmp_path):
-    from hpgs_ns.bench.suites import SuiteError, load_suite, tomllib
+    from hpgs_lab.suites import SuiteError, load_suite, tomllib
 
     path = tmp_path / "suite.toml"
     spec = tomllib.loads(SUITE)
@@ -294,7 +294,7 @@ def test_damaged_round_logs_read_or_fail_in_one_line(tmp_path):
 
 
 def test_damaged_bench_results_read_or_fail_in_one_line(tmp_path):
-    from hpgs_ns.bench.results import ResultError, RunResult
+    from hpgs_lab.results import ResultError, RunResult
 
     source = Path(__file__).resolve().parent.parent / "benchmarks" / "results" / "suite" / "juicebox" / "hpgs" / "farthest" / "seed3.json"
     if not source.is_file():

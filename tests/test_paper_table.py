@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from test_bench_results import make_result
 
-from hpgs_ns.bench.report.paper_table import PAPER_RESULTS, hpgs_paper_table, paper_means
+from hpgs_lab.report.paper_table import PAPER_RESULTS, hpgs_paper_table, paper_means
 
 
 def _table_rows(text: str):

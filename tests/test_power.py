@@ -11,10 +11,10 @@ from scipy.stats import norm
 from test_bench_results import make_result
 from test_bench_suite import write_rows
 
-from hpgs_ns.bench import stats
-from hpgs_ns.bench.power import power_section, rule, scenes_needed, seeds_needed, simulate_power, variance_components
-from hpgs_ns.bench.report import write_report
-from hpgs_ns.bench.results import ViewMetrics
+from hpgs_lab import stats
+from hpgs_lab.power import power_section, rule, scenes_needed, seeds_needed, simulate_power, variance_components
+from hpgs_lab.report import write_report
+from hpgs_lab.results import ViewMetrics
 
 # --- the rule: the vectorised twin against stats.py ---------------------------------------------------------
 

@@ -21,8 +21,8 @@ import yaml
 from nerfstudio.data.utils import colmap_parsing_utils as colmap_utils
 from PIL import Image
 
-from hpgs_ns.bench.results import ResultError, RunResult
-from hpgs_ns.bench.suites import SuiteError, load_suite
+from hpgs_lab.results import ResultError, RunResult
+from hpgs_lab.suites import SuiteError, load_suite
 from hpgs_ns.dataparser import HpgsNerfstudioDataParserConfig, MipNerf360DataParserConfig, SceneDataError
 from hpgs_ns.errors import UserError, print_user_errors
 from hpgs_ns.preference.model import PreferenceModel

@@ -145,7 +145,7 @@ def test_bench_passes_the_option_and_keeps_its_results_apart(tiny_scene, tmp_pat
 
     import tyro
 
-    from hpgs_ns.bench.runs import Bench, train_args
+    from hpgs_lab.runs import Bench, train_args
     from hpgs_ns.method_config import hpgs_trainer_config
     from hpgs_ns.trainer import HpgsTrainerConfig
 

@@ -87,8 +87,8 @@ def test_the_readme_lists_every_builtin_selector():
 
 
 def test_a_plugin_selector_reaches_the_bench_rows_the_candidate_log_and_provenance(toy_plugin):
-    from hpgs_ns.bench.protocols import row_order
-    from hpgs_ns.bench.provenance import code_hash
+    from hpgs_lab.protocols import row_order
+    from hpgs_lab.provenance import code_hash
     from hpgs_ns.selection.candidate_log import logged_selectors
 
     assert row_order().index("last") == len(BUILTIN_SELECTORS)  # after the built-in ones, before the references

@@ -14,9 +14,9 @@ from nerfstudio.data.utils import colmap_parsing_utils as colmap_utils
 from PIL import Image
 from test_bench_results import make_result
 
-from hpgs_ns.bench.report import stress_table
-from hpgs_ns.bench.results import RunResult
-from hpgs_ns.bench.stress import Corrupt, Exposure, PoseNoise, StressConfig, perturbed_copy, split_names
+from hpgs_lab.report import stress_table
+from hpgs_lab.results import RunResult
+from hpgs_lab.stress import Corrupt, Exposure, PoseNoise, StressConfig, perturbed_copy, split_names
 from hpgs_ns.dataparser import MipNerf360DataParserConfig, SceneDataError, _make_downscaled_folder, image_problem
 from hpgs_ns.errors import UserError
 
@@ -205,7 +205,7 @@ def test_stress_table_pairs_each_perturbed_run_with_the_same_seeds_clean_run():
 
 def test_bench_stress_runs_each_scene_clean_and_perturbed(scene, tmp_path, monkeypatch):
     """`hpgs bench --stress` wiring, with training replaced by a stub that records which scene it was given."""
-    from hpgs_ns.bench import runs as bench_module
+    from hpgs_lab import runs as bench_module
 
     def fake_run(bench, job, env=None, sweep=None) -> RunResult:
         parse(job.scene.path)  # the real dataparser must accept the perturbed copy
@@ -214,7 +214,7 @@ def test_bench_stress_runs_each_scene_clean_and_perturbed(scene, tmp_path, monke
                            data=str(job.scene.path), num_views_final=6)
 
     monkeypatch.setattr(bench_module, "run_one", fake_run)
-    monkeypatch.setattr("hpgs_ns.bench.report.make_plots", lambda rows, out: [])
+    monkeypatch.setattr("hpgs_lab.report.make_plots", lambda rows, out: [])
     out = tmp_path / "bench"
     bench_module.Bench(scenes=[scene], out=out, selectors=["random"], seeds=[0], references=False, stress=["corrupt", "exposure"]).main()
     assert sorted(p.relative_to(out).as_posix() for p in out.glob("*/*/*/seed*.json")) == [

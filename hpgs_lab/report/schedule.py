@@ -16,11 +16,11 @@ from __future__ import annotations
 
 from typing import Dict, List, NamedTuple, Sequence, Tuple
 
-from hpgs_ns.bench import stats
-from hpgs_ns.bench.names import ALL, INITIAL
-from hpgs_ns.bench.report.paired import comparable
-from hpgs_ns.bench.report.tables import bench_order
-from hpgs_ns.bench.results import RunResult
+from hpgs_lab import stats
+from hpgs_lab.names import ALL, INITIAL
+from hpgs_lab.report.paired import comparable
+from hpgs_lab.report.tables import bench_order
+from hpgs_lab.results import RunResult
 
 
 class SchedulePair(NamedTuple):

@@ -11,9 +11,9 @@ from __future__ import annotations
 
 from typing import Dict, List, Optional, Sequence, Tuple
 
-from hpgs_ns.bench.protocols import PROTOCOLS
-from hpgs_ns.bench.report.tables import METRICS, mean_std, split_scene_name
-from hpgs_ns.bench.results import RunResult
+from hpgs_lab.protocols import PROTOCOLS
+from hpgs_lab.report.tables import METRICS, mean_std, split_scene_name
+from hpgs_lab.results import RunResult
 
 PROTOCOL = PROTOCOLS["hpgs"]
 

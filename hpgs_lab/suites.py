@@ -1,6 +1,6 @@
 """Benchmark suites: named lists of scenes, each with the dataparser and options it is read with.
 
-A suite is a TOML file (`hpgs bench --suite FILE`, or the name of one shipped in `hpgs_ns/bench/suites/`, e.g.
+A suite is a TOML file (`hpgs bench --suite FILE`, or the name of one shipped in `hpgs_lab/suites/`, e.g.
 `--suite real6`), so per-scene settings live in the suite rather than in a shell history:
 
     [[scene]]

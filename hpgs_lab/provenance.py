@@ -3,11 +3,11 @@
 Each run records them (`provenance` in its JSON), and the settings a resumed sweep compares include them, so a
 results folder never mixes runs made by other code or another model without saying so.
 
-"The code" is a hash of the source files that can move a run's numbers: the training path (model, datamanager,
-dataparser, rounds, trainer, rasterizers, ...) and the run's own selector. Files that cannot (the benchmark's
-reporting, the viewer, the CLIs, other selectors) are left out, so that a sweep built over several sessions can
-resume across commits that only touch those; `CODE_FILES` and `NOT_CODE_FILES` must between them list every
-module (a test checks). The git commit is recorded beside it, for reading.
+"The code" is a hash of the plugin's source files that can move a run's numbers: the training path (model,
+datamanager, dataparser, rounds, trainer, rasterizers, ...) and the run's own selector. Files that cannot (the
+viewer, the CLIs, other selectors; and this lab, which only launches and reports runs) are left out, so that a sweep
+built over several sessions can resume across commits that only touch those; `CODE_FILES` and `NOT_CODE_FILES` must
+between them list every module of hpgs_ns (a test checks). The git commit is recorded beside it, for reading.
 """
 
 from __future__ import annotations
@@ -23,10 +23,11 @@ import tokenize
 from pathlib import Path
 from typing import Dict, List, Optional
 
-from hpgs_ns.bench.names import REFERENCES
+import hpgs_ns
+from hpgs_lab.names import REFERENCES
 
-PACKAGE = Path(__file__).resolve().parent.parent
-INSTALLED = PACKAGE  # where this package's modules are imported from (PACKAGE is the tree hashed)
+PACKAGE = Path(hpgs_ns.__file__).resolve().parent  # the plugin's tree: the code that makes a run's numbers
+INSTALLED = PACKAGE  # where the plugin's modules are imported from (PACKAGE is the tree hashed)
 # `hpgs bench --executor local` builds run records in threads; CPython 3.11's ast module keeps its recursion
 # depth in shared state, so two threads in `ast.parse` at once can raise "AST constructor recursion depth
 # mismatch" (python/cpython#106905). Parsing here is milliseconds: one thread at a time.
@@ -44,7 +45,7 @@ CODE_FILES = (
 # Everything else: cannot change a run's numbers.
 NOT_CODE_FILES = (
     "__init__.py", "atomic_write.py", "cli.py", "demo.py", "errors.py", "ns_train.py", "run_config.py", "viewer.py",
-    "bench/", "preference/", "render/__init__.py", "scenes/__init__.py", "selection/__init__.py",
+    "preference/", "render/__init__.py", "scenes/__init__.py", "selection/__init__.py",
     "selection/candidate_log.py", "selectors/__init__.py", "selectors/", "suggest/",
 )
 

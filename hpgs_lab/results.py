@@ -25,8 +25,8 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any, Dict, List, Mapping, Optional
 
+from hpgs_lab.names import is_reference
 from hpgs_ns.atomic_write import write_json_atomic
-from hpgs_ns.bench.names import is_reference
 from hpgs_ns.errors import UserError
 
 VERSION = 2

@@ -8,9 +8,9 @@ from __future__ import annotations
 import math
 from typing import Dict, Iterator, List, Optional, Sequence, Tuple
 
-from hpgs_ns.bench.names import ALL
-from hpgs_ns.bench.protocols import row_order
-from hpgs_ns.bench.results import RunResult
+from hpgs_lab.names import ALL
+from hpgs_lab.protocols import row_order
+from hpgs_lab.results import RunResult
 
 METRICS = ("psnr", "ssim", "lpips")
 

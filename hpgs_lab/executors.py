@@ -18,8 +18,8 @@ from typing import Any, Callable, Dict, Iterator, List, Literal, Optional, Seque
 
 from rich.console import Console
 
-from hpgs_ns.bench import mps as cuda_mps
-from hpgs_ns.bench.mps import MpsMode
+from hpgs_lab import mps as cuda_mps
+from hpgs_lab.mps import MpsMode
 from hpgs_ns.errors import UserError
 
 CONSOLE = Console(stderr=True)

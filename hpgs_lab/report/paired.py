@@ -8,9 +8,9 @@ from __future__ import annotations
 
 from typing import Dict, List, Sequence, Tuple
 
-from hpgs_ns.bench import stats
-from hpgs_ns.bench.report.tables import METRICS, bench_order, scenes_table
-from hpgs_ns.bench.results import RunResult
+from hpgs_lab import stats
+from hpgs_lab.report.tables import METRICS, bench_order, scenes_table
+from hpgs_lab.results import RunResult
 
 BASELINE = "random"
 

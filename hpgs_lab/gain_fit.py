@@ -22,8 +22,8 @@ from typing import Dict, Iterable, List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from hpgs_ns.bench.names import INITIAL
-from hpgs_ns.bench.results import RunResult
+from hpgs_lab.names import INITIAL
+from hpgs_lab.results import RunResult
 from hpgs_ns.selection.early_stop import ALL, GainModel
 
 

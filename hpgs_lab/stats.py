@@ -40,7 +40,7 @@ from typing import Any, Dict, Iterable, List, Mapping, Protocol, Sequence, Tuple
 
 import numpy as np
 
-from hpgs_ns.bench.names import REFERENCES
+from hpgs_lab.names import REFERENCES
 
 
 class Run(Protocol):

@@ -29,8 +29,8 @@ from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from hpgs_ns.bench import stats
-from hpgs_ns.bench.results import RunResult
+from hpgs_lab import stats
+from hpgs_lab.results import RunResult
 
 EFFECTS_DB = (0.5, 1.0)
 TARGET = 0.8

@@ -8,11 +8,11 @@ import json
 from pathlib import Path
 from typing import Dict, List, Optional, Sequence, Tuple
 
+from hpgs_lab import stats
+from hpgs_lab.report.paired import BASELINE, comparable, comparison_plan
+from hpgs_lab.report.tables import paired_change, psnr_by_seed, short_device, stress_groups
+from hpgs_lab.results import RunResult
 from hpgs_ns.atomic_write import atomic_path
-from hpgs_ns.bench import stats
-from hpgs_ns.bench.report.paired import BASELINE, comparable, comparison_plan
-from hpgs_ns.bench.report.tables import paired_change, psnr_by_seed, short_device, stress_groups
-from hpgs_ns.bench.results import RunResult
 
 
 def _pyplot():

@@ -11,7 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import List, Tuple
 
-from hpgs_ns.bench.names import REFERENCES
+from hpgs_lab.names import REFERENCES
 
 
 def row_order() -> List[str]:

@@ -36,16 +36,16 @@ import tyro
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
+from hpgs_lab import mps as cuda_mps
+from hpgs_lab import provenance
+from hpgs_lab.executors import ExecutorConfig, make_executor, runs_per_device
+from hpgs_lab.names import ALL, FINAL_SET, INITIAL, REFERENCES, is_reference
+from hpgs_lab.protocols import DEFAULT_SELECTORS, PROTOCOLS, Protocol, scaled
+from hpgs_lab.report import DEFAULT_RESULTS_PAGE, write_report
+from hpgs_lab.results import Metrics, Provenance, RoundPsnr, RunResult, SourceRun, Timing, ViewMetrics, start_label
+from hpgs_lab.stress import PerturbationName, StressConfig, perturbed_copy
+from hpgs_lab.suites import SYNTHETIC, Scene, load_suite, scene_from_folder
 from hpgs_ns.atomic_write import atomic_path
-from hpgs_ns.bench import mps as cuda_mps
-from hpgs_ns.bench import provenance
-from hpgs_ns.bench.executors import ExecutorConfig, make_executor, runs_per_device
-from hpgs_ns.bench.names import ALL, FINAL_SET, INITIAL, REFERENCES, is_reference
-from hpgs_ns.bench.protocols import DEFAULT_SELECTORS, PROTOCOLS, Protocol, scaled
-from hpgs_ns.bench.report import DEFAULT_RESULTS_PAGE, write_report
-from hpgs_ns.bench.results import Metrics, Provenance, RoundPsnr, RunResult, SourceRun, Timing, ViewMetrics, start_label
-from hpgs_ns.bench.stress import PerturbationName, StressConfig, perturbed_copy
-from hpgs_ns.bench.suites import SYNTHETIC, Scene, load_suite, scene_from_folder
 from hpgs_ns.errors import UserError
 from hpgs_ns.ns_train import SELECTION_PREFIX, ns_train_command
 from hpgs_ns.selection.early_stop import DEFAULT_GAIN_MODEL
@@ -67,7 +67,7 @@ class Bench:
     suite: Optional[str] = None
     """A suite of scenes with their dataparsers and options: a shipped one (`real6`: the six real captures in
     shared/data at half size, plus a synthetic smoke scene; `real12`: those six and the six of `tune6`) or a .toml
-    file (see `hpgs_ns/bench/suites.py`)."""
+    file (see `hpgs_lab/suites.py`)."""
     suite_scenes: List[str] = field(default_factory=list)
     """Only these scenes of the suite (default: all)."""
     data_root: Path = Path("../shared/data")

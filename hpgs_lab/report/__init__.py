@@ -15,13 +15,12 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Dict, List, Optional
 
-from hpgs_ns.atomic_write import write_text_atomic
-from hpgs_ns.bench.power import power_section
-from hpgs_ns.bench.report.paired import comparable, comparison_plan, paired_report, verdict_sentence
-from hpgs_ns.bench.report.paper_table import hpgs_paper_table
-from hpgs_ns.bench.report.plots import camera_map, gain_plot, make_plots, stress_plot
-from hpgs_ns.bench.report.schedule import schedule_cost_table
-from hpgs_ns.bench.report.tables import (
+from hpgs_lab.power import power_section
+from hpgs_lab.report.paired import comparable, comparison_plan, paired_report, verdict_sentence
+from hpgs_lab.report.paper_table import hpgs_paper_table
+from hpgs_lab.report.plots import camera_map, gain_plot, make_plots, stress_plot
+from hpgs_lab.report.schedule import schedule_cost_table
+from hpgs_lab.report.tables import (
     device_counts,
     markdown_table,
     noise_table,
@@ -30,7 +29,8 @@ from hpgs_ns.bench.report.tables import (
     throughput_table,
     work_table,
 )
-from hpgs_ns.bench.results import load_final_sets, load_results
+from hpgs_lab.results import load_final_sets, load_results
+from hpgs_ns.atomic_write import write_text_atomic
 
 DEFAULT_RESULTS_PAGE = Path("docs/results.md")
 SCHEDULE_TITLE = "**Schedule cost (final-set − run)**"
