@@ -4,7 +4,7 @@ Skipped where CUDA is not available. Self-contained: needs torch, gsplat 1.4.0 (
 first use) and pytest. Targets, per the issue: mean absolute image difference <= 1e-4 and, for every parameter
 tensor, ||g_cpu - g_cuda|| / ||g_cuda|| <= 1e-3. Run with `-s` to see the figures, e.g.
 
-    PYTHONPATH=. pytest -s tests/test_cpu_raster_cuda_parity.py
+    PYTHONPATH=. pytest -s tests/plugin/test_cpu_raster_cuda_parity.py
     HPGS_PARITY_CKPT=outputs/bonsai/hpgs/.../nerfstudio_models/step-000029999.ckpt PYTHONPATH=. pytest -s ...
 
 `HPGS_PARITY_CKPT`: a nerfstudio splatfacto checkpoint (`pipeline` -> `_model.gauss_params.{means, scales, quats,

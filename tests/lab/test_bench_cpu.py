@@ -11,7 +11,7 @@ import shutil
 from pathlib import Path
 
 import pytest
-from test_bench_results import make_result
+from helpers import make_result
 
 from hpgs_lab.names import FINAL_SET
 from hpgs_lab.protocols import fisherrf_schedule
@@ -409,3 +409,25 @@ def test_a_recorded_command_reads_the_same_with_either_spelling_of_its_options()
     assert data_from_command("ns-train hpgs --data='my scenes/fox' nerfstudio-data") == "my scenes/fox"
     assert data_from_command("ns-train hpgs --vis tensorboard") is None
     assert data_from_command("ns-train hpgs --data") is None
+
+
+def test_bench_passes_the_option_and_keeps_its_results_apart(tiny_scene, tmp_path):
+    import sys
+
+    import tyro
+
+    from hpgs_lab.runs import Bench, train_args
+    from hpgs_ns.method_config import hpgs_trainer_config
+    from hpgs_ns.trainer import HpgsTrainerConfig
+
+    bench = tyro.cli(Bench, args=["--scenes", str(tiny_scene), "--protocols", "fisherrf", "--reset-after-add"])
+    job = bench.jobs()[0]
+    assert job.protocol.name == "fisherrf-reset" and job.protocol.select_at[:2] == (400, 900)
+    assert job.result_path(bench.out).parent.parent.name == "fisherrf-reset"
+    args = train_args(bench, job, tmp_path)
+    assert args[:4] == [sys.executable, "-m", "nerfstudio.scripts.train", "hpgs"]
+    cfg = tyro.cli(tyro.conf.FlagConversionOff[HpgsTrainerConfig], default=hpgs_trainer_config(), args=args[4:])
+    assert cfg.pipeline.selection.reset_after_add is True
+    plain = Bench(scenes=[tiny_scene], protocols=["fisherrf"])
+    assert plain.jobs()[0].protocol.name == "fisherrf"
+    assert "--pipeline.selection.reset-after-add" not in train_args(plain, plain.jobs()[0], tmp_path)

@@ -138,25 +138,3 @@ def test_without_the_option_training_continues(without_reset):
     assert log["reset_after_add"] is False and log["rounds"][0]["reset"] is False
     assert "num_gaussians_before_reset" not in log["rounds"][0]
     assert without_reset["trainer"].pipeline.model.step_offset == 0
-
-
-def test_bench_passes_the_option_and_keeps_its_results_apart(tiny_scene, tmp_path):
-    import sys
-
-    import tyro
-
-    from hpgs_lab.runs import Bench, train_args
-    from hpgs_ns.method_config import hpgs_trainer_config
-    from hpgs_ns.trainer import HpgsTrainerConfig
-
-    bench = tyro.cli(Bench, args=["--scenes", str(tiny_scene), "--protocols", "fisherrf", "--reset-after-add"])
-    job = bench.jobs()[0]
-    assert job.protocol.name == "fisherrf-reset" and job.protocol.select_at[:2] == (400, 900)
-    assert job.result_path(bench.out).parent.parent.name == "fisherrf-reset"
-    args = train_args(bench, job, tmp_path)
-    assert args[:4] == [sys.executable, "-m", "nerfstudio.scripts.train", "hpgs"]
-    cfg = tyro.cli(tyro.conf.FlagConversionOff[HpgsTrainerConfig], default=hpgs_trainer_config(), args=args[4:])
-    assert cfg.pipeline.selection.reset_after_add is True
-    plain = Bench(scenes=[tiny_scene], protocols=["fisherrf"])
-    assert plain.jobs()[0].protocol.name == "fisherrf"
-    assert "--pipeline.selection.reset-after-add" not in train_args(plain, plain.jobs()[0], tmp_path)

@@ -22,7 +22,7 @@ from hpgs_lab.report import load_results
 from hpgs_lab.runs import Bench, TrainingFailed
 from hpgs_ns.errors import UserError
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 
 FAKE = r'''#!{python}
 import json, os, sys
@@ -154,7 +154,7 @@ def test_a_slurm_job_starts_and_quits_its_own_daemon(fake_mps):
 
 
 def test_runs_ended_by_a_gpu_fault_under_mps_run_again_once(fake_mps, tiny_scene, tmp_path, monkeypatch, capsys):
-    from test_bench_results import make_result
+    from helpers import make_result
 
     from hpgs_lab import runs
 

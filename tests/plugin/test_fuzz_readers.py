@@ -296,7 +296,7 @@ def test_damaged_round_logs_read_or_fail_in_one_line(tmp_path):
 def test_damaged_bench_results_read_or_fail_in_one_line(tmp_path):
     from hpgs_lab.results import ResultError, RunResult
 
-    source = Path(__file__).resolve().parent.parent / "benchmarks" / "results" / "suite" / "juicebox" / "hpgs" / "farthest" / "seed3.json"
+    source = Path(__file__).resolve().parents[2] / "benchmarks" / "results" / "suite" / "juicebox" / "hpgs" / "farthest" / "seed3.json"
     if not source.is_file():
         pytest.skip(f"{source} not found")
     result = RunResult.from_json(source).to_dict()

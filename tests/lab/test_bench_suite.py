@@ -13,7 +13,7 @@ from types import SimpleNamespace
 
 import pytest
 from conftest import REPO, require_shared
-from test_bench_results import make_result
+from helpers import make_result, write_rows
 
 from hpgs_lab import provenance
 from hpgs_lab.executors import ExecutorConfig, LocalExecutor, SlurmExecutor, ray_gpus_per_run, runs_per_device
@@ -176,7 +176,7 @@ def test_the_code_hash_follows_a_selectors_own_files_only(monkeypatch, tmp_path)
     before = {s: provenance.code_hash(s) for s in ("random", "fisher", "hpgs", None)}
     assert len(set(before.values())) == 4
     (copy / "selectors" / "fisher.py").write_text((copy / "selectors" / "fisher.py").read_text() + "\nCHANGED = 1\n")
-    (copy / "bench" / "report" / "tables.py").write_text("# reporting cannot change a run\n")
+    (copy / "cli.py").write_text("# the command line cannot change a run\n")
     after = {s: provenance.code_hash(s) for s in ("random", "fisher", "hpgs", None)}
     assert [s for s in before if before[s] != after[s]] == ["fisher"]
     # comments, docstrings (the options' field docs too) and blank lines are not code
@@ -337,11 +337,6 @@ def test_timing_columns_take_only_runs_that_had_the_gpu_to_themselves():
     assert "| a | hpgs | blend | 1 | 27 | 20.00 | 0.500 | 0.300 | H100 | 400 | 4.0 |" in markdown_table(alone)
     other_machine = [run("blend", "vm-9.1", 0.0, 1000.0), run("farthest", "gpu2-9.2", 500.0, 1000.0)]
     assert "| H100 | 1000 | 10.0 |" in markdown_table(other_machine)
-
-
-def write_rows(out, data) -> None:
-    for r in data:
-        r.to_json(out / r.scene / r.protocol / r.selector / f"seed{r.seed}.json")
 
 
 def test_report_only_writes_the_results_page(tmp_path):

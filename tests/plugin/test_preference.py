@@ -23,7 +23,7 @@ from hpgs_ns.preference.evaluate import EvalPref, evaluate_pairs
 from hpgs_ns.preference.pairs import PairsError, image_disjoint_split, images_of, read_pairs, read_usable_pairs
 from hpgs_ns.preference.train import TrainPref, paired_augment
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")

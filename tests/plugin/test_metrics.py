@@ -14,7 +14,7 @@ import torch
 from hpgs_ns import metrics
 from hpgs_ns import offline_weights as ow
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def _shared() -> Path | None:

@@ -30,7 +30,7 @@ from hpgs_ns.errors import UserError
 from hpgs_ns.preference import label_server as ls
 from hpgs_ns.preference.pairs import read_pairs
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 N_IMAGES = 6
 
 

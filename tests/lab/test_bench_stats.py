@@ -11,7 +11,7 @@ from typing import Dict, List, Tuple
 
 import numpy as np
 import pytest
-from test_bench_results import make_result
+from helpers import make_result
 
 from hpgs_lab.results import RunResult
 from hpgs_lab.stats import (

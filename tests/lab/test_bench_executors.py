@@ -16,6 +16,7 @@ import time
 from pathlib import Path
 
 import pytest
+from helpers import lab_commands_env
 
 from hpgs_lab.executors import ExecutorConfig, LocalExecutor, RayExecutor, SlurmExecutor
 from hpgs_lab.report import load_results, markdown_table
@@ -23,7 +24,7 @@ from hpgs_lab.results import RunResult
 from hpgs_lab.runs import Bench
 from hpgs_ns.errors import UserError
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 # 4 runs (2 selectors x 2 seeds, no reference rows) of 15 CPU steps on the 64x48 ring scene.
 TINY = dict(
     selectors=["random", "farthest"], seeds=[0, 1], protocols=["hpgs"], references=False, step_scale=0.001,
@@ -44,7 +45,8 @@ def cli(scene: Path, out: Path, *extra: str) -> list:
 
 
 def env() -> dict:
-    return {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(REPO), "RAY_USAGE_STATS_ENABLED": "0"}
+    """`hpgs bench` registered as pyproject.toml declares it (this checkout is on PYTHONPATH, not installed)."""
+    return {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(REPO), "RAY_USAGE_STATS_ENABLED": "0", **lab_commands_env()}
 
 
 def by_run(out: Path) -> dict:

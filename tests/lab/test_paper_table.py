@@ -3,7 +3,7 @@ and the paper's bonsai rows and seven-scene means beside them."""
 
 from __future__ import annotations
 
-from test_bench_results import make_result
+from helpers import make_result
 
 from hpgs_lab.report.paper_table import PAPER_RESULTS, hpgs_paper_table, paper_means
 

@@ -1,4 +1,5 @@
-"""The package's shape: no import cycle between modules, and no module importing from a layer above its own.
+"""The packages' shape: no import cycle between modules, no module importing from a layer above its own, and the
+plugin (hpgs_ns) never importing the lab (hpgs_lab), which imports only the plugin.
 
 The import graph is read statically (every `import` statement, at module level or inside a function), as a
 newcomer reading the code would follow it; a package's `__init__` importing its own submodules is not a cycle.
@@ -10,19 +11,21 @@ import ast
 from pathlib import Path
 from typing import Dict, List, Set
 
-PACKAGE = Path(__file__).resolve().parent.parent / "hpgs_ns"
+REPO = Path(__file__).resolve().parents[2]
+PACKAGE = REPO / "hpgs_ns"  # the plugin
+LAB = REPO / "hpgs_lab"  # the benchmark lab
 
 
 def module_name(path: Path) -> str:
-    parts = list(path.relative_to(PACKAGE.parent).with_suffix("").parts)
+    parts = list(path.relative_to(REPO).with_suffix("").parts)
     if parts[-1] == "__init__":
         parts = parts[:-1]
     return ".".join(parts)
 
 
-def import_graph() -> Dict[str, Set[str]]:
-    """module -> the package modules it imports (anywhere in its file)."""
-    files = {module_name(p): p for p in PACKAGE.rglob("*.py")}
+def import_graph(packages=(PACKAGE, LAB)) -> Dict[str, Set[str]]:
+    """module -> the modules of `packages` it imports (anywhere in its file)."""
+    files = {module_name(p): p for package in packages for p in package.rglob("*.py")}
     graph: Dict[str, Set[str]] = {}
     for name, path in files.items():
         is_package = path.name == "__init__.py"
@@ -97,6 +100,41 @@ def test_no_import_cycle_between_modules():
     assert cycles(graph) == []
 
 
+def top_level_imports(path: Path) -> Set[str]:
+    """The top-level packages a file imports, anywhere in it (absolute imports; relative ones stay in its package)."""
+    found: Set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            found |= {a.name.partition(".")[0] for a in node.names}
+        elif isinstance(node, ast.ImportFrom) and not node.level and node.module:
+            found.add(node.module.partition(".")[0])
+    return found
+
+
+def test_the_plugin_never_imports_the_lab_and_the_lab_imports_only_the_plugin():
+    """Arrows only lab -> plugin: no hpgs_ns module imports hpgs_lab, not even inside a function (the lab's
+    `hpgs bench` reaches the plugin's `hpgs` through the `hpgs.commands` entry point), and of this repository's
+    packages the lab imports only hpgs_ns."""
+    graph = import_graph()
+    assert graph and any(m.startswith("hpgs_lab.") for m in graph) and any(m.startswith("hpgs_ns.") for m in graph)
+    plugin_to_lab = sorted(f"{a} imports {b}" for a, targets in graph.items() if a.split(".")[0] == "hpgs_ns"
+                           for b in targets if b.split(".")[0] == "hpgs_lab")
+    assert plugin_to_lab == []
+    ours = {p.name for p in REPO.iterdir() if (p / "__init__.py").is_file()} | {"benchmarks", "tests", "scripts"}
+    assert ours >= {"hpgs_ns", "hpgs_lab"}
+    for package, allowed in ((PACKAGE, {"hpgs_ns"}), (LAB, {"hpgs_ns", "hpgs_lab"})):
+        for path in package.rglob("*.py"):
+            assert top_level_imports(path) & ours <= allowed, f"{path.relative_to(REPO)} imports {top_level_imports(path) & ours}"
+    assert not (PACKAGE / "bench").exists()  # the lab's old home inside the plugin
+
+
+def test_the_lab_check_sees_an_import_of_the_lab(tmp_path):
+    plugin = tmp_path / "hpgs_ns"
+    plugin.mkdir()
+    (plugin / "cli.py").write_text("def bench():\n    from hpgs_lab.runs import Bench\n")
+    assert top_level_imports(plugin / "cli.py") == {"hpgs_lab"}
+
+
 # The package's layers, lowest first: a module imports only from its own layer or the ones below it. A module
 # belongs to the longest prefix listed.
 LAYERS = (
@@ -111,7 +149,8 @@ LAYERS = (
     ("pipeline", ("hpgs_ns.pipeline",)),
     ("trainer", ("hpgs_ns.trainer",)),
     ("method", ("hpgs_ns.method_config", "hpgs_ns.run_config")),
-    ("commands", ("hpgs_ns", "hpgs_ns.cli", "hpgs_ns.demo", "hpgs_ns.suggest", "hpgs_lab")),
+    ("commands", ("hpgs_ns", "hpgs_ns.cli", "hpgs_ns.demo", "hpgs_ns.suggest")),
+    ("the lab", ("hpgs_lab",)),  # above the whole plugin: it may import any of it, nothing imports it
 )
 
 

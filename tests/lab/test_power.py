@@ -7,9 +7,8 @@ import math
 
 import numpy as np
 import pytest
+from helpers import make_result, write_rows
 from scipy.stats import norm
-from test_bench_results import make_result
-from test_bench_suite import write_rows
 
 from hpgs_lab import stats
 from hpgs_lab.power import power_section, rule, scenes_needed, seeds_needed, simulate_power, variance_components

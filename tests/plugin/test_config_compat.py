@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-DATA = Path(__file__).resolve().parent / "data"
+DATA = Path(__file__).resolve().parents[1] / "data"  # tests/data
 VERSIONS = ("0.1.0", "0.2.0")
 
 

@@ -7,30 +7,18 @@ import json
 from pathlib import Path
 
 import pytest
+from helpers import make_result
 
 from hpgs_lab.results import (
     VERSION,
-    Metrics,
-    Provenance,
     ResultError,
     RoundPsnr,
     RunResult,
-    Timing,
     ViewMetrics,
     load_results,
 )
 
-RESULTS = Path(__file__).resolve().parent.parent / "benchmarks" / "results"
-
-
-def make_result(scene="s", protocol="hpgs", selector="random", seed=0, psnr=20.0, ssim=0.5, lpips=0.3, *,
-                wall=1.0, selection=0.0, device="cpu x2", runs_per_gpu=1, sweep_id=None, started_at=None,
-                settings=None, gpu=None, mps=None, **fields) -> RunResult:
-    """A run with the given numbers (the other test files build their rows with this)."""
-    return RunResult(scene=scene, protocol=protocol, selector=selector, seed=seed, test=Metrics(psnr, ssim, lpips),
-                     timing=Timing(wall, selection, sweep_id=sweep_id, started_at=started_at, runs_per_gpu=runs_per_gpu,
-                                   gpu=gpu, mps=mps),
-                     provenance=Provenance(device=device, settings=settings), **fields)
+RESULTS = Path(__file__).resolve().parents[2] / "benchmarks" / "results"
 
 
 # --- version 1: the flat files written before RunResult, in the five layouts committed ----------------------
