@@ -197,8 +197,13 @@ def test_strict_init_runs_go_to_their_own_protocol_folder(tiny_scene, tmp_path):
 
 
 def test_work_table_shows_what_selection_skipped():
-    rounds = [{"work": {"pixels_rendered": 25.0, "pixels_full_resolution": 100.0, "pairs_differentiated": 30.0,
-                        "pairs_unculled": 120.0, "backward_passes": 8.0, "views_rendered": 10.0}}] * 2
+    from hpgs_ns.selection.records import RoundRecord
+
+    work = {"pixels_rendered": 25.0, "pixels_full_resolution": 100.0, "pairs_differentiated": 30.0,
+            "pairs_unculled": 120.0, "backward_passes": 8.0, "views_rendered": 10.0}
+    # the rounds as SelectionLog.read gives them (RoundRecords since the log is typed)
+    rounds = [RoundRecord(round=k, step=20 * k, selector="fisher", chosen=["v"], chosen_indices=[k], seconds=0.5,
+                          num_active=6 + k, work=work) for k in (1, 2)]
     work = summed_work(rounds)
     assert work["pixels_rendered"] == 50 and work["backward_passes"] == 16
     row = make_result("s", "hpgs", "fisher", selection=1.5, selection_work=work)
