@@ -24,7 +24,7 @@ demo: venv
 	$(BIN)/hpgs demo
 
 lint: venv
-	$(BIN)/ruff check hpgs_ns tests benchmarks scripts
+	$(BIN)/ruff check hpgs_ns hpgs_lab tests benchmarks scripts
 
 test: venv lint
 	# One intra-op thread per test process, one process per core (pytest-xdist; a file's tests stay in one process,

@@ -65,7 +65,7 @@ def main() -> None:
 
     from nerfstudio.scripts.train import main as train_main
 
-    from hpgs_ns.bench.runs import train_timing
+    from hpgs_lab.runs import train_timing
     from hpgs_ns.method_config import hpgs_trainer_config
     from hpgs_ns.model import _offline_lpips_in_splatfacto
 

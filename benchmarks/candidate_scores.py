@@ -10,7 +10,7 @@ scene out*: the numbers reported for it are on the scene it never saw.
     python benchmarks/candidate_scores.py benchmarks/results/suite --out candidate_scores.json
 
 Is the oracle the right target? Where a logged run has its test PSNR at every round step and an `initial`
-reference (`hpgs_ns.bench.gain_fit.view_gains`), each round's chosen view is set against what that round gained in
+reference (`hpgs_lab.gain_fit.view_gains`), each round's chosen view is set against what that round gained in
 test PSNR (over the reference): the Spearman correlation of the pick's render-error percentile with the gain.
 
 `--selectors farthest hpgs` restricts the combination to those scores and prints its weights fitted on every
@@ -50,8 +50,8 @@ def load_rounds(folder: Path) -> List[dict]:
 
 def oracle_vs_gain(rounds: List[dict], folder: Path) -> Dict[str, object]:
     """Spearman, over rounds, of the chosen view's render-error percentile with the round's test-PSNR gain."""
-    from hpgs_ns.bench.gain_fit import view_gains
-    from hpgs_ns.bench.results import load_results
+    from hpgs_lab.gain_fit import view_gains
+    from hpgs_lab.results import load_results
 
     gains = {}
     for v in view_gains(load_results(folder)):

@@ -13,8 +13,8 @@ import argparse
 import json
 from pathlib import Path
 
-from hpgs_ns.bench.gain_fit import early_stop_curve, fit_gain_model
-from hpgs_ns.bench.results import load_results
+from hpgs_lab.gain_fit import early_stop_curve, fit_gain_model
+from hpgs_lab.results import load_results
 
 THRESHOLDS = (-0.5, -0.25, 0.0, 0.05, 0.1, 0.15, 0.2, 0.25, 0.3, 0.5, 1.0)
 

@@ -32,8 +32,8 @@ def dispatch(executor, items: int) -> float:
 
 
 def sweep_seconds(scene: Path, out: Path, runs: int, cluster) -> dict:
-    from hpgs_ns.bench.results import load_results
-    from hpgs_ns.bench.runs import Bench
+    from hpgs_lab.results import load_results
+    from hpgs_lab.runs import Bench
 
     bench = Bench(
         scenes=[scene], out=out, selectors=["random", "farthest"][:runs], seeds=[0], protocols=["hpgs"],
@@ -57,7 +57,7 @@ def main() -> None:
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
     import ray
 
-    from hpgs_ns.bench.executors import ExecutorConfig, LocalExecutor, RayExecutor, SlurmExecutor, start_local_ray
+    from hpgs_lab.executors import ExecutorConfig, LocalExecutor, RayExecutor, SlurmExecutor, start_local_ray
     from hpgs_ns.scenes.synthetic import make_scene
 
     tmp = Path(tempfile.mkdtemp(prefix="executor_overhead."))

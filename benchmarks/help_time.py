@@ -45,11 +45,11 @@ entrypoint()
 
 def commands() -> Dict[str, List[str]]:
     """label -> argv, in table order."""
-    from hpgs_ns.cli import COMMANDS
+    from hpgs_ns.cli import all_commands
 
     hpgs, ns_train = str(BIN / "hpgs"), str(BIN / "ns-train")
     out = {"hpgs --help": [hpgs, "--help"]}
-    out.update({f"hpgs {name} --help": [hpgs, name, "--help"] for name in COMMANDS})
+    out.update({f"hpgs {name} --help": [hpgs, name, "--help"] for name in all_commands()})
     out["ns-train hpgs --help"] = [ns_train, "hpgs", "--help"]
     out["ns-train splatfacto --help"] = [ns_train, "splatfacto", "--help"]
     out["ns-train splatfacto --help, no plugin"] = [sys.executable, "-c", NS_TRAIN_WITHOUT_PLUGIN, "splatfacto", "--help"]

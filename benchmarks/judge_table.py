@@ -4,7 +4,7 @@ Reads `benchmarks/results/judge-full/<scene>/<start>/<variant>/seed<k>.json` (st
 variant: the progressive run's selector, e.g. `farthest`, or `final-set`, its final 20 views trained from step 0), and the runs of
 main at 2bbac07 (`benchmarks/results/suite/<scene>/fisherrf/farthest/`) for the guard. Prints per scene and start:
 run PSNR per seed, final-set, schedule cost (final-set - run, same seed), then the bars: mean schedule cost with its
-95% paired interval (hierarchical bootstrap over scenes, `hpgs_ns.bench.stats`), fox's PSNR, the seed SD of
+95% paired interval (hierarchical bootstrap over scenes, `hpgs_lab.stats`), fox's PSNR, the seed SD of
 `farthest` pooled over scenes; and each trainer arm (a start folder such as `colmap-r16`) against another (by default
 `colmap`), paired by scene and seed, with its interval and sign-flip p; writes them as JSON. Random runs (bonsai,
 fox) live in `<start>-random/` folders beside their own final-sets, and count in their start mode's Done-when line. An arm without final-set
@@ -24,8 +24,8 @@ import math
 from collections import defaultdict
 from pathlib import Path
 
+from hpgs_lab import stats
 from hpgs_ns.atomic_write import write_json_atomic
-from hpgs_ns.bench import stats
 
 ROOT = Path("benchmarks/results/judge-full")
 BEFORE = Path("benchmarks/results/suite")  # main at 2bbac07, same protocol

@@ -4,7 +4,7 @@ final-set run), alone or as one of N runs sharing the GPU (under CUDA MPS or not
     python benchmarks/profile_step.py --scene PATH --views-json benchmarks/results/judge-full/farthest_views.json \
         --scene-name stitch --steps 6100 --window 6000 6050 --concurrent 8 --mps on --out DIR
 
-The parent starts an MPS daemon for the GPU (`--mps on`, `hpgs_ns.bench.mps`), then N training processes with the
+The parent starts an MPS daemon for the GPU (`--mps on`, `hpgs_lab.mps`), then N training processes with the
 same settings; the first is profiled over `--window` (callbacks, data loading and logging included: everything
 between the window's first and last step). DIR/profile.json: the window's wall time per step, the GPU's busy time
 per step (union of kernel intervals) and its share of the wall time, host-device syncs per step, the top kernels
@@ -111,7 +111,7 @@ def worker(args: argparse.Namespace) -> None:
 def parent(args: argparse.Namespace) -> None:
     import contextlib
 
-    from hpgs_ns.bench import mps as cuda_mps
+    from hpgs_lab import mps as cuda_mps
 
     args.out.mkdir(parents=True, exist_ok=True)
     gpu = os.environ.get("CUDA_VISIBLE_DEVICES", "0").split(",")[0]

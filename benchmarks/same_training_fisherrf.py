@@ -25,7 +25,7 @@ from hpgs_ns.atomic_write import write_json_atomic
 
 def main() -> None:
     import hpgs_ns
-    from hpgs_ns.bench.runs import Bench
+    from hpgs_lab.runs import Bench
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scene", type=Path, required=True)

@@ -8,7 +8,7 @@ selector (orbit candidates for an arc; sphere candidates for the band, as the or
 the photos left); each pose is matched to the nearest photo of the block not yet taken; a run per selector then
 trains from scratch on every view but the block plus its matched photos (same seed and steps).
 Runs are paired by (scene, block, seed); gains over `farthest` and `random` get the benchmark's intervals
-(`hpgs_ns.bench.stats`, the unit being the scene). Results: one JSON per run under OUT, `suggest_check.md`.
+(`hpgs_lab.stats`, the unit being the scene). Results: one JSON per run under OUT, `suggest_check.md`.
 
     python benchmarks/suggest_check.py --suite real6 --suite-scenes bonsai stitch --data-root .devdata \
         --blocks 3 --seeds 0 --selectors hpgs fisher farthest random --out benchmarks/results/suggest
@@ -27,10 +27,10 @@ from typing import Dict, List, Optional, Sequence
 
 import torch
 
+from hpgs_lab import stats
+from hpgs_lab.results import Metrics
+from hpgs_lab.suites import Scene, load_suite
 from hpgs_ns.atomic_write import write_json_atomic, write_text_atomic
-from hpgs_ns.bench import stats
-from hpgs_ns.bench.results import Metrics
-from hpgs_ns.bench.suites import Scene, load_suite
 from hpgs_ns.dataparser import DATAPARSERS, view_name
 from hpgs_ns.ns_train import ns_train_command
 from hpgs_ns.suggest import candidates as cand

@@ -86,8 +86,8 @@ def run(args: argparse.Namespace) -> None:
 
 
 def rows(args: argparse.Namespace) -> None:
-    from hpgs_ns.bench.report import load_results
-    from hpgs_ns.bench.report.tables import short_device
+    from hpgs_lab.report import load_results
+    from hpgs_lab.report.tables import short_device
 
     batches = [json.loads(line) for line in (args.folder / "batches.jsonl").read_text().splitlines() if line.strip()]
     table, psnr = [], {}

@@ -76,7 +76,7 @@ CHOSEN = "poses-5-r9"  # by the tuning scenes at 4 and 8 views; hpgs_ns.scenes.t
 
 def load_scene(name: str, data_root: Path):
     """(suite, dataparser outputs of the training split) as the benchmark suite reads the scene."""
-    from hpgs_ns.bench.suites import load_suite
+    from hpgs_lab.suites import load_suite
     from hpgs_ns.dataparser import DATAPARSERS
 
     suite = "tune6" if name in TUNING else "real6"

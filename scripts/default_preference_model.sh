@@ -18,7 +18,7 @@ OUT=${3:-hpgs_ns/assets/preference-default.pt}
 declare -A STEPS=([juicebox]=2000) EVERY=([juicebox]=400)
 for scene in bonsai juicebox stitch mold-gold-cape campus-building fox; do
   [ -f "$PREF/$scene/renders.csv" ] && continue
-  data=$(python -c "from hpgs_ns.bench.suites import load_suite; print(load_suite('real6', '$DATA_ROOT', ['$scene'])[0].path)")
+  data=$(python -c "from hpgs_lab.suites import load_suite; print(load_suite('real6', '$DATA_ROOT', ['$scene'])[0].path)")
   hpgs collect --data "$data" --out "$PREF/$scene" --downscale-factor 4 --num-views 8 --steps "${STEPS[$scene]:-1200}" \
       --every "${EVERY[$scene]:-300}" --rasterizer cpu
 done

@@ -1,9 +1,11 @@
 # Source ON the GPU machine after .dev/prelude.sh. The project is on PYTHONPATH but not pip-installed, so
-# nerfstudio cannot see its entry point (ns-train would exit 2 with "hpgs" unknown).
+# nerfstudio cannot see its entry point (ns-train would exit 2 with "hpgs" unknown), nor `hpgs` the lab's
+# (`hpgs bench` would say it needs the lab): both are named here instead.
 # A carried path is gone after a call that does not name it, so what later processes need is kept in /tmp, which
 # lasts as long as the machine: the prebuilt gsplat kernels, and the LPIPS weights (scripts/device_setup.sh): AlexNet
 # from .dev/extra, VGG16 joined from the two halves of .dev-vgg/ once two calls have carried them.
 export NERFSTUDIO_METHOD_CONFIGS=hpgs=hpgs_ns.method_config:hpgs
+export HPGS_COMMANDS=bench=hpgs_lab.cli:bench
 if ls .dev/prebuilt/gsplat_cuda-*.so > /dev/null 2>&1; then
   mkdir -p /tmp/site/prebuilt && cp -n .dev/prebuilt/gsplat_cuda-*.so /tmp/site/prebuilt/
 fi

@@ -21,7 +21,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from device_scene_with_tracks import main as colmap_copy  # noqa: E402
 from PIL import Image  # noqa: E402
 
-from hpgs_ns.bench.suites import load_suite  # noqa: E402
+from hpgs_lab.suites import load_suite  # noqa: E402
 
 
 def main() -> None:

@@ -1,7 +1,7 @@
 """Skip what a scene does not need: stop adding views once the next one is predicted to gain less than X dB.
 
 `GainModel` is the run-time part: per selector, the predicted test-PSNR gain of the view a round adds, as
-a + b * log(views). It is fitted on benchmark runs, leave one scene out, by `hpgs_ns.bench.gain_fit` (which says
+a + b * log(views). It is fitted on benchmark runs, leave one scene out, by the lab's `hpgs_lab.gain_fit` (which says
 how a view's gain is measured against the `initial` reference); `benchmarks/early_stop.py` writes the shipped
 model. The score of the pick is not used yet (`--log-candidate-scores` runs will calibrate it).
 """

@@ -1,0 +1,78 @@
+"""Helpers the test files share (importable as `helpers` from tests/plugin and tests/lab: pytest puts tests/, the
+folder of the top conftest.py, on sys.path): one-line errors as `hpgs` prints them, and the lab's rows
+(`RunResult`s with given numbers, and a results folder of them)."""
+
+from __future__ import annotations
+
+import sys
+from typing import TYPE_CHECKING
+
+import pytest
+
+from hpgs_ns.errors import print_user_errors
+
+if TYPE_CHECKING:  # the plugin's tests never import the lab
+    from hpgs_lab.results import RunResult
+
+
+def one_line(err: BaseException) -> str:
+    """What the excepthook prints for `err` (asserting it is one `error: ...` line), without the `error: `."""
+    printed = []
+    fallback = lambda *args: pytest.fail(f"not a one-line error: {args[0].__name__}: {args[1]}")  # noqa: E731
+
+    class Err:
+        @staticmethod
+        def write(text):
+            printed.append(text)
+
+    real, sys.stderr = sys.stderr, Err
+    try:
+        print_user_errors(type(err), err, err.__traceback__, fallback)
+    finally:
+        sys.stderr = real
+    text = "".join(printed)
+    assert text.startswith("error: ") and text.endswith("\n") and text.count("\n") == 1, text
+    return text[len("error: "):-1]
+
+
+def hpgs_error(monkeypatch, *args: str) -> str:
+    """Run `hpgs ARGS` in-process; it must fail as a one-line error. Returns the line."""
+    from hpgs_ns.cli import entrypoint
+
+    monkeypatch.setattr(sys, "argv", ["hpgs", *map(str, args)])
+    with pytest.raises(Exception) as info:  # noqa: B017 (any exception: one_line says whether it prints as one line)
+        entrypoint()
+    return one_line(info.value)
+
+
+def make_result(scene="s", protocol="hpgs", selector="random", seed=0, psnr=20.0, ssim=0.5, lpips=0.3, *,
+                wall=1.0, selection=0.0, device="cpu x2", runs_per_gpu=1, sweep_id=None, started_at=None,
+                settings=None, gpu=None, mps=None, **fields) -> RunResult:
+    """A run with the given numbers (the lab's test files build their rows with this)."""
+    from hpgs_lab.results import Metrics, Provenance, RunResult, Timing
+
+    return RunResult(scene=scene, protocol=protocol, selector=selector, seed=seed, test=Metrics(psnr, ssim, lpips),
+                     timing=Timing(wall, selection, sweep_id=sweep_id, started_at=started_at, runs_per_gpu=runs_per_gpu,
+                                   gpu=gpu, mps=mps),
+                     provenance=Provenance(device=device, settings=settings), **fields)
+
+
+def write_rows(out, data) -> None:
+    """Write `data` (RunResults) under `out` as `hpgs bench` lays a results folder out."""
+    for r in data:
+        r.to_json(out / r.scene / r.protocol / r.selector / f"seed{r.seed}.json")
+
+
+def lab_commands_env() -> dict:
+    """The environment that registers the lab's `hpgs` commands in a subprocess as pyproject.toml declares them
+    (`$HPGS_COMMANDS`: this checkout is on PYTHONPATH, but the venv's installed metadata may be another's)."""
+    from pathlib import Path
+
+    try:
+        import tomllib
+    except ModuleNotFoundError:  # Python 3.10
+        import tomli as tomllib
+
+    pyproject = tomllib.loads((Path(__file__).resolve().parents[1] / "pyproject.toml").read_text())
+    commands = pyproject["project"]["entry-points"]["hpgs.commands"]
+    return {"HPGS_COMMANDS": ",".join(f"{name}={spec}" for name, spec in commands.items())}

@@ -1,0 +1,148 @@
+"""One selector registry: the selection options' choices and groups (and their 0.2 spelling), `hpgs bench`, the
+candidate log, provenance, the README, and selectors that other packages register through the `hpgs_ns.selectors`
+entry point group."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+from conftest import REPO, run_training, short_config
+
+from hpgs_ns.selectors import BUILTIN_SELECTORS, SelectionError, selector_config, selector_names
+
+TOY = textwrap.dedent('''
+    """A third-party selector: always the candidate with the highest index."""
+    from dataclasses import dataclass, field
+    from typing import Type
+
+    from hpgs_ns.selectors.base import Selection, SelectorConfig
+
+
+    class LastSelector:
+        def __init__(self, config):
+            self.config = config
+
+        def select(self, context):
+            picked = sorted(context.candidates)[-context.num_to_pick:]
+            return Selection(indices=picked, scores={c: float(c) for c in context.candidates})
+
+
+    @dataclass
+    class LastSelectorConfig(SelectorConfig):
+        """Always the candidates with the highest index."""
+
+        _target: Type = field(default_factory=lambda: LastSelector)
+        keep_last: int = 1
+        """An option of a third-party selector (unused by its choice)."""
+''')
+
+
+@pytest.fixture
+def toy_plugin(tmp_path, monkeypatch) -> Path:
+    """An installed package `toy_selector` whose entry point registers the selector `last`."""
+    (tmp_path / "toy_selector.py").write_text(TOY)
+    info = tmp_path / "toy_selector-0.1.dist-info"
+    info.mkdir()
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: toy-selector\nVersion: 0.1\n")
+    (info / "entry_points.txt").write_text("[hpgs_ns.selectors]\nlast = toy_selector:LastSelectorConfig\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    return tmp_path
+
+
+def parse_pipeline(args):
+    """`ns-train hpgs`'s pipeline options as tyro reads them (in-process)."""
+    import tyro
+
+    from hpgs_ns.method_config import hpgs_trainer_config
+
+    default = hpgs_trainer_config(100).pipeline
+    return tyro.cli(type(default), default=default, args=args)
+
+
+def test_selection_options_parse_and_the_0_2_spelling_is_gone():
+    new = parse_pipeline(["--selection.selector", "fisher", "--selection.fisher.probes", "3",
+                          "--selection.select-every", "50"])
+    assert (new.selection.selector, new.selection.fisher.probes, new.selection.select_every) == ("fisher", 3, 50)
+    with pytest.raises(SystemExit):  # dropped at 0.4 (the changelog says so); old config.yml files still read
+        parse_pipeline(["--datamanager.selector", "fisher"])
+
+
+def test_the_readme_lists_every_builtin_selector():
+    readme = (REPO / "README.md").read_text()
+    table = readme[readme.index("## The selectors"):]
+    table = table[: table.index("\n\n", table.index("| name |"))]
+    assert sorted(re.findall(r"^\| `([\w-]+)` \|", table, re.M)) == sorted(BUILTIN_SELECTORS)
+
+
+def test_a_plugin_selector_reaches_the_bench_rows_the_candidate_log_and_provenance(toy_plugin):
+    from hpgs_lab.protocols import row_order
+    from hpgs_lab.provenance import code_hash
+    from hpgs_ns.selection.candidate_log import logged_selectors
+
+    assert row_order().index("last") == len(BUILTIN_SELECTORS)  # after the built-in ones, before the references
+    # every selector whose scores say something, the plugin's too; random's scores are all equal, blend is a mix
+    assert logged_selectors() == ["farthest", "fisher", "hpgs", "condorcet", "last"]
+    before = code_hash("last")
+    assert before != code_hash(None)
+    (toy_plugin / "toy_selector.py").write_text(TOY + "\nCHANGED = 1  # a change to the plugin's module\n")
+    assert code_hash("last") != before  # the plugin's own file moves its runs' code hash
+
+
+def test_unknown_selector_is_a_one_line_error():
+    with pytest.raises(SelectionError, match="unknown selector 'nope'; choose one of random, farthest"):
+        selector_config("nope")
+
+
+def test_an_entry_point_selector_runs_a_round(toy_plugin, tiny_scene, tmp_path):
+    assert "last" in selector_names()
+    assert type(selector_config("last")).__name__ == "LastSelectorConfig"
+    cfg = short_config(tiny_scene, tmp_path, steps=25, every=20, rounds=1, selector="last")
+    run_dir = Path(run_training(cfg).base_dir)
+    log = json.loads((run_dir / "selected_views.json").read_text())
+    assert [r["selector"] for r in log["rounds"]] == ["last"]
+    assert log["rounds"][0]["chosen"] == [max(log["withheld"] + log["rounds"][0]["chosen"])]
+
+
+def test_ns_train_offers_an_entry_point_selector_and_its_options_on_the_command_line(toy_plugin, tmp_path):
+    """A selector of another package: chosen, and one of its options set, from `ns-train hpgs`'s command line, as
+    ns-train parses it (a new process, which reads the entry points as nerfstudio does)."""
+    code = textwrap.dedent("""
+        import sys, tyro
+        from hpgs_ns.method_config import hpgs_trainer_config
+        default = hpgs_trainer_config(100)
+        config = tyro.cli(type(default), default=default, args=sys.argv[1:])
+        options = config.pipeline.selection.selector_config()
+        print(type(options).__name__, options.keep_last, config.pipeline.selection.selector)
+    """)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(toy_plugin), str(REPO), os.environ.get("PYTHONPATH", "")])}
+    args = ["--pipeline.selection.selector", "last", "--pipeline.selection.last.keep-last", "3"]
+    out = subprocess.run([sys.executable, "-c", code, *args], env=env, capture_output=True, text=True, timeout=180)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip().splitlines()[-1] == "LastSelectorConfig 3 last"
+    help_text = subprocess.run([sys.executable, "-c", code, "--help"], env=env, capture_output=True, text=True,
+                               timeout=180).stdout
+    assert "--pipeline.selection.last.keep-last" in help_text
+
+
+def test_a_run_without_rounds_never_builds_its_selector(monkeypatch):
+    """A final-set run (`max-rounds 0`) with the default `hpgs` selector loads no preference model."""
+    from types import SimpleNamespace
+
+    from hpgs_ns.selection.config import SelectionConfig
+    from hpgs_ns.selectors import hpgs as hpgs_selector
+
+    def no_model(*_args, **_kwargs):
+        raise AssertionError("the preference model was loaded")
+
+    monkeypatch.setattr(hpgs_selector, "load_preference_model", no_model)
+    datamanager = SimpleNamespace(config=SimpleNamespace(seed=0))
+    SelectionConfig(selector="hpgs", max_rounds=0).setup(datamanager=datamanager, model=None)
+    with pytest.raises(AssertionError, match="the preference model was loaded"):
+        SelectionConfig(selector="hpgs", max_rounds=1).setup(datamanager=datamanager, model=None)
