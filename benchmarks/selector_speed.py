@@ -1,4 +1,4 @@
-"""Seconds per selection round for each selector on a real scene (the GPU figures in docs/bonsai-and-selection-cost.md).
+"""Seconds per selection round for each selector on a real scene (the GPU figures in docs/lab/bonsai-and-selection-cost.md).
 
 Trains `ns-train hpgs` for `--steps` steps with one round at the last step, for each selector, and writes
 OUT/selector_speed.json with the round's seconds, the number of candidates and the Gaussian count.

@@ -53,7 +53,14 @@ from hpgs_ns.selection.log import SelectionLog
 from hpgs_ns.selection.records import RoundRecord
 
 CONSOLE = Console(stderr=True)
-PREFERENCE_SELECTORS = ("hpgs", "condorcet", "blend")  # the selectors that score with a preference model
+
+
+def uses_preference_model(name: str) -> bool:
+    """Whether selector `name` scores with a preference model: its config class says (`SelectorConfig`'s facts)."""
+    from hpgs_lab.names import is_reference
+    from hpgs_ns.selectors.registry import selector_class
+
+    return not is_reference(name) and bool(getattr(selector_class(name), "uses_preference_model", False))
 
 
 @dataclass
@@ -211,7 +218,7 @@ class Bench:
                 todo.append(job)
                 continue
             check_settings(self, job, path)
-        fallback = sorted({j.scene.name for j in todo if j.name in PREFERENCE_SELECTORS and self.preference_models is not None
+        fallback = sorted({j.scene.name for j in todo if uses_preference_model(j.name) and self.preference_models is not None
                            and scene_preference_model(self, j) is None})
         if fallback:
             CONSOLE.print(f"hpgs bench: no model in {self.preference_models} for {', '.join(fallback)}: they run the shipped "
@@ -447,17 +454,17 @@ def _model_training_scenes(path: Path) -> frozenset:
 
 def default_model_scenes(bench: Bench, jobs: Sequence[Job]) -> List[str]:
     """Scenes of `jobs` whose preference-model runs would use the shipped default although it saw their renders."""
-    if bench.preference_models is not None or not any(j.name in PREFERENCE_SELECTORS for j in jobs):
+    if bench.preference_models is not None or not any(uses_preference_model(j.name) for j in jobs):
         return []
     trained_on = default_model_training_scenes()
-    return sorted({j.scene.name for j in jobs if j.name in PREFERENCE_SELECTORS and j.scene.name in trained_on})
+    return sorted({j.scene.name for j in jobs if uses_preference_model(j.name) and j.scene.name in trained_on})
 
 
 def scene_preference_model(bench: Bench, job: Job) -> Optional[Path]:
     """The scene's own preference model under --preference-models, for selectors that run one (else None: the
     shipped default, also for a scene without its own model that the default never saw, which is then already a
     model trained without it)."""
-    if bench.preference_models is None or job.name not in PREFERENCE_SELECTORS:
+    if bench.preference_models is None or not uses_preference_model(job.name):
         return None
     folder = Path(bench.preference_models)
     if not folder.is_dir() or not any(folder.glob("*.pt")):
