@@ -1,6 +1,5 @@
-"""The triangulation variants a study rejected (benchmarks/triangulation_yield.py, docs/active-training.md
-"Triangulation yield"), kept here so the benchmark can still measure them; hpgs_ns.scenes.triangulate runs only
-"ransac" and "poses".
+"""The triangulation variants a study rejected (benchmarks/triangulation_yield.py, docs/lab/triangulation-yield.md),
+kept here so the benchmark can still measure them; hpgs_ns.scenes.triangulate runs only "ransac" and "poses".
 
 - guided matching (`verification="guided"`): the known pose guides the matching itself: each feature is matched
   (ratio test, cross-check) only among the features of the other view within `max_epipolar_error` pixels of its
