@@ -44,7 +44,8 @@ CODE_FILES = (
 )
 # Everything else: cannot change a run's numbers.
 NOT_CODE_FILES = (
-    "__init__.py", "atomic_write.py", "cli.py", "demo.py", "errors.py", "ns_train.py", "run_config.py", "viewer.py",
+    "__init__.py", "atomic_write.py", "cli.py", "compat.py", "demo.py", "errors.py", "ns_train.py", "run_config.py",
+    "viewer.py",
     "preference/", "render/__init__.py", "scenes/__init__.py", "selection/__init__.py",
     "selection/candidate_log.py", "selection/log.py", "selectors/__init__.py", "selectors/", "suggest/",
 )

@@ -57,10 +57,15 @@ CONSOLE = Console(stderr=True)
 
 def uses_preference_model(name: str) -> bool:
     """Whether selector `name` scores with a preference model: its config class says (`SelectorConfig`'s facts)."""
-    from hpgs_lab.names import is_reference
+    from hpgs_ns.selectors.base import SelectionError
     from hpgs_ns.selectors.registry import selector_class
 
-    return not is_reference(name) and bool(getattr(selector_class(name), "uses_preference_model", False))
+    if is_reference(name):
+        return False
+    try:
+        return bool(getattr(selector_class(name), "uses_preference_model", False))
+    except SelectionError:  # not a selector: its run fails with that line, reported with the sweep's failures
+        return False
 
 
 @dataclass
