@@ -86,6 +86,11 @@ class ActiveDatamanagerConfig(FullImageDatamanagerConfig):
     splat well; a handful, mostly from one pair of views, may not beat splatfacto's random start."""
     strict_init: bool = False
     """Deprecated: --pipeline.datamanager.seed-points colmap-initial."""
+    late_view_boost: int = 1
+    """Each pass over the active views holds a view this many times while it trails the active views' mean number
+    of training draws by more than one, so a view added late catches up on its share of the steps instead of being seen as
+    often as the rest from then on (a view added at step 18400 of 20000 otherwise gets ~1/20 of 1600 steps). 1:
+    every view once a pass (off). An option to pilot (issue #46), not a tuned default."""
     def __post_init__(self) -> None:
         # tyro builds this config while it parses the command line: a value that makes no sense is a one-line error
         # before nerfstudio prints the config or makes a run folder. (A config.yml is read without __init__.)
@@ -96,6 +101,8 @@ class ActiveDatamanagerConfig(FullImageDatamanagerConfig):
         check_option(flag + "num-initial-views", self.num_initial_views,
                      self.num_initial_views >= 1 or bool(self.initial_view_names), "must be at least 1",
                      "pass 1 or more (or name the views: --pipeline.datamanager.initial-view-names)")
+        check_option(flag + "late-view-boost", self.late_view_boost, self.late_view_boost >= 1, "must be at least 1",
+                     "pass 1 (off) or e.g. 3")
         check_option(flag + "camera-res-scale-factor", self.camera_res_scale_factor, self.camera_res_scale_factor > 0,
                      "must be > 0", "pass e.g. 0.5 for half resolution, or 1")
         check_option(flag + "max-thread-workers", self.max_thread_workers,
@@ -161,6 +168,8 @@ class ActiveDatamanager(FullImageDatamanager):
         self.excluded = {self._view_index(v, "excluded") for v in self.config.exclude_views}
         self.active: List[int] = self._initial_views()
         self.history: List[RoundRecord] = []
+        self.visits: Dict[int, int] = {}
+        """Training steps each view was drawn for so far (late-view-boost reads them)."""
         self.selection_signature: Optional[Dict[str, str]] = None
         """The run's selection options as the checkpoint keeps them (set by the pipeline; see `HpgsTrainer`)."""
         self.loaded_selection_signature: Optional[Dict[str, str]] = None
@@ -375,13 +384,30 @@ class ActiveDatamanager(FullImageDatamanager):
         CONSOLE.print(f"strict init: kept {int(keep.sum())} of {keep.numel()} seed points seen by >= {min_views} initial views")
 
     def sample_train_cameras(self) -> List[int]:
-        """A shuffled pass over the active views (nerfstudio calls this whenever a pass is used up)."""
+        """A shuffled pass over the active views (nerfstudio calls this whenever a pass is used up; an add starts a
+        new one): each view once, or `late-view-boost` times while it is behind (`pass_views`)."""
         if not hasattr(self, "active"):  # called by the parent constructor before the split exists
             return [0]
-        order = torch.randperm(len(self.active), generator=self.generator).tolist()
-        return [self.active[i] for i in order]
+        views = self.pass_views()
+        order = torch.randperm(len(views), generator=self.generator).tolist()
+        return [views[i] for i in order]
+
+    def pass_views(self) -> List[int]:
+        """The views of the next pass: every active view, and `late-view-boost - 1` more copies of each one behind,
+        trained on more than one time fewer than the active views' mean (a pass's own spread is one; none when the
+        boost is 1)."""
+        views = list(self.active)
+        boost = int(getattr(self.config, "late_view_boost", 1))
+        if boost > 1 and views:
+            visits = getattr(self, "visits", {})
+            mean = sum(visits.get(i, 0) for i in views) / len(views)
+            views += [i for i in self.active for _ in range(boost - 1) if visits.get(i, 0) < mean - 1]
+        return views
 
     def next_train(self, step: int):
+        if self.train_unseen_cameras:  # counted before the parent pops it and, at a pass's end, draws the next pass
+            first = self.train_unseen_cameras[0]
+            self.visits[first] = self.visits.get(first, 0) + 1
         camera, data = super().next_train(step)
         index = camera.metadata["cam_idx"]
         assert index in self.active, f"training view {index} is not active"
@@ -398,6 +424,7 @@ class ActiveDatamanager(FullImageDatamanager):
         # Where the shuffled pass over the active views stands: a resumed run visits them in the same order.
         state["train_unseen"] = [int(i) for i in self.train_unseen_cameras]
         state["generator"] = self.generator.get_state()
+        state["visits"] = {str(i): int(n) for i, n in self.visits.items()}  # what late-view-boost compares
         return state
 
     def set_extra_state(self, state: Dict[str, Any]) -> None:
@@ -417,5 +444,6 @@ class ActiveDatamanager(FullImageDatamanager):
                 record.scores = {by_file[n]: v for n, v in record.scores.items()}
         if "generator" in state:
             self.generator.set_state(state["generator"])
+        self.visits = {int(i): int(n) for i, n in (state.get("visits") or {}).items()}
         unseen = [int(i) for i in state.get("train_unseen", [])]
         self.train_unseen_cameras = unseen if unseen and set(unseen) <= set(self.active) else self.sample_train_cameras()

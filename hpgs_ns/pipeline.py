@@ -59,6 +59,8 @@ class HpgsPipeline(VanillaPipeline):
         if getattr(self.datamanager, "seed_points_mode", None) == "active":
             # written since active starts restart by default: a checkpoint without it (0.3's) never restarted
             signature["after-add.restart-active-starts"] = str(bool(selection.after_add.restart_active_starts))
+        if getattr(self.datamanager.config, "late_view_boost", 1) != 1:  # passes weighted by visits
+            signature["late-view-boost"] = str(self.datamanager.config.late_view_boost)
         if getattr(self.datamanager.config, "random_points", "cube") != "cube":  # restarts draw the splat's points again
             signature["random-points"] = str(self.datamanager.config.random_points)
         self.datamanager.selection_signature = signature
