@@ -35,7 +35,7 @@ PARSE_LOCK = threading.RLock()
 
 # Files (relative to hpgs_ns/) whose change can change any run's numbers.
 CODE_FILES = (
-    "cpu_raster.py", "datamanager.py", "dataparser.py", "metrics.py", "method_config.py", "model.py",
+    "cpu_raster.py", "datamanager.py", "dataparser.py", "image_files.py", "metrics.py", "method_config.py", "model.py",
     "offline_weights.py", "pipeline.py", "schedules.py", "trainer.py",
     "render/pair_render.py", "render/rasterize.py", "render/viewmats.py", "scenes/colmap_model.py", "scenes/synthetic.py",
     "scenes/triangulate.py", "scenes/view_points.py", "selection/after_add.py", "selection/config.py", "selection/early_stop.py",

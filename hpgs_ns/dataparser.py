@@ -44,6 +44,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from PIL import Image
 
 from hpgs_ns.errors import UserError, check_option
+from hpgs_ns.image_files import image_problem
 from hpgs_ns.scenes.colmap_model import ColmapModelError, check_model, model_file
 
 MAX_AUTO_RESOLUTION = 1600  # nerfstudio's rule for the automatic downscale factor
@@ -340,25 +341,6 @@ def downscaled_fix(path: Path, camera: Tuple[int, int], model: str) -> str:
         return f"delete {path.parent} to have it rewritten from {source.parent}"
     return (f"it is written from {source}, which is {width}x{height}, not {factor}x the camera's size: replace {source} "
             f"with the photo its camera was made from (then delete {path.parent}), or remove it from {model}")
-
-
-def image_problem(path: Path) -> Optional[str]:
-    """Why the image file at `path` cannot be used ("empty file", "truncated", PIL's error), or None.
-
-    Cheap but real: JPEGs are decoded at 1/8 scale (`draft`), which still reads the whole entropy-coded stream;
-    other formats are checked by PIL's `verify()` (for PNG: every chunk and its CRC, up to IEND)."""
-    try:
-        if path.stat().st_size == 0:
-            return "empty file"
-        with Image.open(path) as image:
-            if image.format == "JPEG":
-                image.draft("RGB", (max(image.width // 8, 1), max(image.height // 8, 1)))
-                image.load()
-            else:
-                image.verify()
-    except Exception as err:  # PIL raises OSError, SyntaxError, struct.error, ... for damaged files
-        return "truncated" if "truncated" in str(err).lower() else (str(err) or type(err).__name__)
-    return None
 
 
 @dataclass
