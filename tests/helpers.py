@@ -4,10 +4,13 @@ folder of the top conftest.py, on sys.path): one-line errors as `hpgs` prints th
 
 from __future__ import annotations
 
+import json
 import sys
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import pytest
+from PIL import Image
 
 from hpgs_ns.errors import print_user_errors
 
@@ -76,3 +79,16 @@ def lab_commands_env() -> dict:
     pyproject = tomllib.loads((Path(__file__).resolve().parents[1] / "pyproject.toml").read_text())
     commands = pyproject["project"]["entry-points"]["hpgs.commands"]
     return {"HPGS_COMMANDS": ",".join(f"{name}={spec}" for name, spec in commands.items())}
+
+
+def make_capture(folder: Path, frames: int = 6) -> Path:
+    """A tiny transforms.json capture (32x24 PNGs)."""
+    (folder / "images").mkdir(parents=True)
+    entries = []
+    for i in range(frames):
+        Image.new("RGB", (32, 24), (40 * i, 80, 120)).save(folder / "images" / f"{i:04d}.png")
+        entries.append({"file_path": f"images/{i:04d}.png",
+                        "transform_matrix": [[1, 0, 0, i * 0.1], [0, 1, 0, 0], [0, 0, 1, 2], [0, 0, 0, 1]]})
+    meta = {"fl_x": 30.0, "fl_y": 30.0, "cx": 16.0, "cy": 12.0, "w": 32, "h": 24, "frames": entries}
+    (folder / "transforms.json").write_text(json.dumps(meta, indent=1))
+    return folder

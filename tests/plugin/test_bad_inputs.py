@@ -10,7 +10,6 @@ does for a bad scene path).
 
 from __future__ import annotations
 
-import json
 import os
 import subprocess
 import sys
@@ -20,6 +19,7 @@ import pytest
 import tyro
 import yaml
 from conftest import run_training, short_config
+from helpers import make_capture
 from PIL import Image
 
 from hpgs_ns.dataparser import HpgsNerfstudioDataParserConfig, MipNerf360DataParserConfig, SceneDataError
@@ -156,19 +156,6 @@ def test_a_truncated_photo_is_dropped_with_images_n_written_for_it_and_the_run_t
     trainer = run_training(cfg)
     assert trainer.pipeline.datamanager.image_names[2] == "images/0004.png"  # 0003 dropped
     assert (trainer.checkpoint_dir / "step-000000003.ckpt").is_file()
-
-
-def make_capture(folder: Path, frames: int = 6) -> Path:
-    """A tiny transforms.json capture (32x24 PNGs)."""
-    (folder / "images").mkdir(parents=True)
-    entries = []
-    for i in range(frames):
-        Image.new("RGB", (32, 24), (40 * i, 80, 120)).save(folder / "images" / f"{i:04d}.png")
-        entries.append({"file_path": f"images/{i:04d}.png",
-                        "transform_matrix": [[1, 0, 0, i * 0.1], [0, 1, 0, 0], [0, 0, 1, 2], [0, 0, 0, 1]]})
-    meta = {"fl_x": 30.0, "fl_y": 30.0, "cx": 16.0, "cy": 12.0, "w": 32, "h": 24, "frames": entries}
-    (folder / "transforms.json").write_text(json.dumps(meta, indent=1))
-    return folder
 
 
 def capture_error(folder: Path, **options) -> str:

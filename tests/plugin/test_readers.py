@@ -18,7 +18,7 @@ from pathlib import Path
 import pytest
 import torch
 import yaml
-from helpers import hpgs_error, one_line
+from helpers import hpgs_error, make_capture, one_line
 from nerfstudio.data.utils import colmap_parsing_utils as colmap_utils
 from PIL import Image
 
@@ -115,18 +115,6 @@ def test_the_text_and_binary_readers_give_nerfstudios_tuples(colmap_scene, tmp_p
 
 
 # ---- transforms.json ------------------------------------------------------------------------------------------
-
-
-def make_capture(folder: Path, frames: int = 6) -> Path:
-    (folder / "images").mkdir(parents=True)
-    entries = []
-    for i in range(frames):
-        Image.new("RGB", (32, 24), (40 * i, 80, 120)).save(folder / "images" / f"{i:04d}.png")
-        entries.append({"file_path": f"images/{i:04d}.png",
-                        "transform_matrix": [[1, 0, 0, i * 0.1], [0, 1, 0, 0], [0, 0, 1, 2], [0, 0, 0, 1]]})
-    meta = {"fl_x": 30.0, "fl_y": 30.0, "cx": 16.0, "cy": 12.0, "w": 32, "h": 24, "frames": entries}
-    (folder / "transforms.json").write_text(json.dumps(meta, indent=1))
-    return folder
 
 
 TRANSFORMS_CASES = [
