@@ -92,3 +92,18 @@ def make_capture(folder: Path, frames: int = 6) -> Path:
     meta = {"fl_x": 30.0, "fl_y": 30.0, "cx": 16.0, "cy": 12.0, "w": 32, "h": 24, "frames": entries}
     (folder / "transforms.json").write_text(json.dumps(meta, indent=1))
     return folder
+
+
+def text_copy(scene: Path, dest: Path) -> Path:
+    """The scene with its model converted to COLMAP's text format (and no rig/frame files)."""
+    import shutil
+
+    from nerfstudio.data.utils import colmap_parsing_utils as colmap_utils
+
+    shutil.copytree(scene, dest)
+    model = dest / "sparse" / "0"
+    cameras, images, points = colmap_utils.read_model(model, ".bin")
+    for path in model.iterdir():
+        path.unlink()
+    colmap_utils.write_model(cameras, images, points, model, ext=".txt")
+    return dest

@@ -10,15 +10,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import run_training, short_config
-from helpers import make_result
+from helpers import make_result, text_copy
 from nerfstudio.data.utils import colmap_parsing_utils as colmap_utils
 from PIL import Image
 
 from hpgs_lab.report import stress_table
 from hpgs_lab.results import RunResult
 from hpgs_lab.stress import Corrupt, Exposure, PoseNoise, StressConfig, perturbed_copy, split_names
-from hpgs_ns.dataparser import MipNerf360DataParserConfig, SceneDataError, _make_downscaled_folder, image_problem
+from hpgs_ns.dataparser import MipNerf360DataParserConfig, SceneDataError, _make_downscaled_folder
 from hpgs_ns.errors import UserError
+from hpgs_ns.image_files import image_problem
 from hpgs_ns.scenes.colmap_model import read_images
 
 
@@ -240,19 +241,6 @@ def test_training_runs_on_a_corrupt_copy(scene, tmp_path):
     dm = trainer.pipeline.datamanager
     assert len(dm.image_names) == 32 and not bad & {Path(n).name for n in dm.image_names} and len(dm.active) == 5
     assert [Path(p).name for p in dm.eval_dataset.image_filenames] == split_names(scene)[1]
-
-
-def text_copy(scene: Path, dest: Path) -> Path:
-    """The scene with its model converted to COLMAP's text format (and no rig/frame files)."""
-    import shutil
-
-    shutil.copytree(scene, dest)
-    model = dest / "sparse" / "0"
-    cameras, images, points = colmap_utils.read_model(model, ".bin")
-    for path in model.iterdir():
-        path.unlink()
-    colmap_utils.write_model(cameras, images, points, model, ext=".txt")
-    return dest
 
 
 def test_pose_noise_on_a_text_model_rewrites_text_and_keeps_test_poses(scene, tmp_path):

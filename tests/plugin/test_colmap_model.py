@@ -4,12 +4,11 @@ rig/frame poses behind."""
 from __future__ import annotations
 
 import os
-import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
-from nerfstudio.data.utils import colmap_parsing_utils as colmap_utils
+from helpers import text_copy
 
 from hpgs_ns.scenes.colmap_model import model_file, read_images, read_points3D, write_images
 
@@ -21,17 +20,6 @@ def scene(tmp_path_factory) -> Path:
     return make_scene(
         tmp_path_factory.mktemp("colmap") / "ring", layout="ring", num_cameras=16, width=32, height=24, num_points=300, seed=0
     )
-
-
-def text_copy(scene: Path, dest: Path) -> Path:
-    """The scene with its model converted to COLMAP's text format (and no rig/frame files)."""
-    shutil.copytree(scene, dest)
-    model = dest / "sparse" / "0"
-    cameras, images, points = colmap_utils.read_model(model, ".bin")
-    for path in model.iterdir():
-        path.unlink()
-    colmap_utils.write_model(cameras, images, points, model, ext=".txt")
-    return dest
 
 
 def test_binary_is_preferred_and_missing_files_read_as_none(scene, tmp_path):
