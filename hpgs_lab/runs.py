@@ -622,13 +622,14 @@ def wait_watching_mps(pid: int, env: Dict[str, str], every: float = 2.0):
         done, status, usage = os.wait4(pid, os.WNOHANG)
         if done:
             return status, usage, seen
-        if not seen:
-            now = cuda_mps.observed(pid, env)
-            seen = now if now is not None or seen is None else seen
-            if seen is None:  # no daemon where this run looks for one: nothing more to learn
-                _, status, usage = os.wait4(pid, 0)
-                return status, usage, None
+        now = cuda_mps.observed(pid, env)
+        if now or (now is None and seen is None):  # seen, or no daemon where this run looks: nothing more to learn
+            seen = now
+            break
+        seen = False if now is False else seen
         time.sleep(every)
+    _, status, usage = os.wait4(pid, 0)
+    return status, usage, seen
 
 
 def summed_work(rounds: Sequence[RoundRecord]) -> Dict[str, float]:

@@ -209,10 +209,7 @@ class SelectionRounds:
                 self.run_round(step)
                 done = self.after_round(step, attrs.optimizers, before, restart_counts, end, active_mode)
                 # The round is recorded once, with what every step after the add did, and logged once.
-                record = self.datamanager.history[-1]
-                self.datamanager.history[-1] = dataclasses.replace(
-                    record, **{k: v for k, v in done.items() if k != "after_add"},
-                    after_add={**record.after_add, **done.get("after_add", {})})
+                self.datamanager.history[-1] = dataclasses.replace(self.datamanager.history[-1], **done)
                 self.write_log()
             elif self.config.eval_each_round and self.is_scheduled(step):
                 # No round here (none left, or a reference run): the test PSNR at the step still says what the
