@@ -9,7 +9,9 @@ final-set whose recorded views are not its run's final views (the run was re-run
 Per scene and selector: the run's and the final-set's PSNR and their difference, means over the paired seeds,
 beside the `initial` and `all` references of those seeds. Across scenes (no smoke-check scenes, no stress
 copies): the mean of per-scene mean costs with a 95% hierarchical bootstrap interval (`stats`), as the paired
-comparisons are made.
+comparisons are made; and the selectors ranked twice on the scenes every one of them has pairs on, by their runs
+and by their final-sets (the views alone): a trainer that ranks selectors by when their views arrived shows up as
+two different orders.
 """
 
 from __future__ import annotations
@@ -92,7 +94,8 @@ def schedule_cost_table(rows: Sequence[RunResult], final_sets: Sequence[RunResul
             f"| {scene} | {protocol} | {sel} | {len(group)} | {view_cell} | {_mean([p.run.test.psnr for p in group]):.2f} | "
             f"{_mean([p.final.test.psnr for p in group]):.2f} | {_mean([p.cost for p in group]):+.2f} | {' | '.join(cells)} |"
         )
-    lines += ["", across_scenes_table(pairs)] + ([""] + note if note else [])
+    ranks = rankings_table(pairs)
+    lines += ["", across_scenes_table(pairs)] + (["", ranks] if ranks else []) + ([""] + note if note else [])
     return "\n".join(lines) + "\n"
 
 
@@ -126,3 +129,38 @@ def across_scenes_table(pairs: Sequence[SchedulePair], n_boot: int = 10000, seed
     if len(lines) == header:
         return "Across scenes: no final-set pairs outside smoke-check scenes and stress copies."
     return "\n".join(lines)
+
+
+def rankings_table(pairs: Sequence[SchedulePair]) -> str:
+    """Per protocol with two or more selectors: each selector's mean run PSNR and mean final-set PSNR over the
+    scenes all of them have pairs on (mean over scenes of per-scene means over seeds; comparable scenes only) and
+    its rank by each (1: highest). "" where no protocol has two selectors with a scene in common."""
+    keep = {id(r) for r in comparable([p.run for p in pairs])}
+    cells: Dict[Tuple[str, str, str], List[SchedulePair]] = {}
+    for p in pairs:
+        if id(p.run) in keep:
+            cells.setdefault((p.run.protocol, p.run.selector, p.run.scene), []).append(p)
+    order = bench_order()
+    blocks = []
+    for protocol in sorted({k[0] for k in cells}):
+        selectors = sorted({k[1] for k in cells if k[0] == protocol}, key=lambda s: (order.get(s, 99), s))
+        scenes = set.intersection(*({k[2] for k in cells if k[:2] == (protocol, s)} for s in selectors))
+        if len(selectors) < 2 or not scenes:
+            continue
+        means = {}
+        for sel in selectors:
+            per_scene = [cells[protocol, sel, scene] for scene in sorted(scenes)]
+            means[sel] = (_mean([_mean([p.run.test.psnr for p in g]) for g in per_scene]),
+                          _mean([_mean([p.final.test.psnr for p in g]) for g in per_scene]))
+        rank = [{sel: 1 + sorted(means, key=lambda s: -means[s][i]).index(sel) for sel in selectors} for i in (0, 1)]
+        for sel in selectors:
+            blocks.append(f"| {protocol} | {sel} | {len(scenes)} | {means[sel][0]:.2f} | {rank[0][sel]} | "
+                          f"{means[sel][1]:.2f} | {rank[1][sel]} |")
+    if not blocks:
+        return ""
+    return "\n".join(["Two rankings, on the scenes every selector of the protocol has final-set pairs on: by the runs "
+                      "(views added during training) and by the final-sets (the same views from step 0). Mean over "
+                      "those scenes of per-scene mean test PSNR (dB); rank 1 is the highest. Read the intervals of "
+                      "the paired comparisons before a rank.", "",
+                      "| protocol | selector | scenes | run PSNR | rank by run | final-set PSNR | rank by final-set |",
+                      "|---|---|---|---|---|---|---|", *blocks])

@@ -379,6 +379,33 @@ def test_the_schedule_cost_table_pairs_each_run_with_its_final_set(tmp_path):
     assert schedule_cost_table(rows, []) == ""
 
 
+def test_the_two_rankings_order_selectors_by_their_runs_and_by_their_final_sets():
+    from hpgs_lab.report.schedule import SchedulePair, rankings_table
+
+    def pair(scene, sel, seed, run, final, protocol="fisherrf"):
+        views = [f"v{i}" for i in range(4)]
+        r = make_result(scene, protocol, sel, seed, run, initial_views=views, chosen_views=[], num_views_final=4)
+        f = make_result(scene, protocol, FINAL_SET, seed, final, initial_views=views, num_views_final=4,
+                        final_set_of=SourceRun(sel, seed, 0, views))
+        return SchedulePair(r, f)
+
+    pairs = [
+        # farthest: best run, worst views; hpgs: the other way round (its schedule cost is large)
+        pair("a", "farthest", 0, 21.0, 21.5), pair("a", "farthest", 1, 23.0, 23.5), pair("b", "farthest", 0, 19.0, 19.2),
+        pair("a", "hpgs", 0, 20.0, 23.0), pair("b", "hpgs", 0, 18.0, 21.0),
+        pair("a", "random", 0, 19.0, 20.0), pair("b", "random", 0, 17.0, 18.0),
+        pair("c", "random", 0, 30.0, 31.0),  # only random ran on c: not in the common scenes
+        pair("a", "random", 0, 10.0, 12.0, protocol="hpgs"),  # a protocol with one selector: no ranking
+    ]
+    table = rankings_table(pairs)
+    # farthest: scene means a 22.0/22.5, b 19.0/19.2 -> 20.50 / 20.85; hpgs 19.00 / 22.00; random 18.00 / 19.00
+    assert "| fisherrf | farthest | 2 | 20.50 | 1 | 20.85 | 2 |" in table
+    assert "| fisherrf | hpgs | 2 | 19.00 | 2 | 22.00 | 1 |" in table
+    assert "| fisherrf | random | 2 | 18.00 | 3 | 19.00 | 3 |" in table
+    assert "\n| hpgs |" not in table
+    assert rankings_table(pairs[-2:]) == ""
+
+
 def test_extra_args_cannot_turn_the_viewer_on_and_a_list_option_may_end_them(tmp_path):
     import tyro
     from nerfstudio.configs.method_configs import AnnotatedBaseConfigUnion

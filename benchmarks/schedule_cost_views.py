@@ -1,0 +1,102 @@
+"""Where the schedule cost lands (issue #46): per test view, final-set PSNR - run PSNR, grouped by when the training
+view nearest to it (by camera centre) joined the run.
+
+Reads runs laid out as `ROOT/<start>/<arm>/<scene>/fisherrf/<selector>/[final-set/]seed<k>.json` (as
+`benchmarks/late_view_boost.py`) and each scene's COLMAP poses from `--data-root/<scene>/sparse/0`. A test view
+nearest an initial view is grouped `initial`; else by the round that added its nearest view (1-8, 9-12, 13-16).
+Prints each start's mean cost per group for one arm, and the other arm's run PSNR minus this one's per group
+(same views, so only for selectors whose views do not depend on training, e.g. `random`); writes JSON.
+
+    python benchmarks/schedule_cost_views.py [--root benchmarks/results/tune-boost] [--arm off] [--other b3] \
+        [--data-root ../shared/data] [--out ROOT/cost_by_view.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from collections import defaultdict
+from pathlib import Path
+from typing import Dict, List
+
+import numpy as np
+
+from hpgs_ns.atomic_write import write_json_atomic
+from hpgs_ns.scenes.colmap_model import read_images
+
+GROUPS = (("initial", 0, 0), ("rounds 1-8", 1, 8), ("rounds 9-12", 9, 12), ("rounds 13-16", 13, 16))
+
+
+def centres(data_root: Path, scene: str, cache: Dict[str, Dict[str, np.ndarray]]) -> Dict[str, np.ndarray]:
+    """{'images/<name>': camera centre} from the scene's COLMAP model (the names the runs record)."""
+    if scene not in cache:
+        images = read_images(data_root / scene / "sparse" / "0") or {}
+        cache[scene] = {f"images/{im.name}": -im.qvec2rotmat().T @ im.tvec for im in images.values()}
+    return cache[scene]
+
+
+def group_of(round_added: int) -> str:
+    return next(name for name, lo, hi in GROUPS if lo <= round_added <= hi)
+
+
+def view_rows(root: Path, start: str, arm: str, data_root: Path, cache) -> List[dict]:
+    """One row per (run, test view): its run PSNR, its final-set PSNR and its nearest training view's round."""
+    rows = []
+    for path in sorted((root / start / arm).glob("*/fisherrf/*/seed*.json")):
+        final_path = path.parent / "final-set" / path.name
+        if not final_path.exists():
+            continue
+        run, final = json.loads(path.read_text()), json.loads(final_path.read_text())
+        where = centres(data_root, run["scene"], cache)
+        order = list(run["initial_views"]) + list(run["chosen_views"])
+        added = {name: max(i - len(run["initial_views"]) + 1, 0) for i, name in enumerate(order)}
+        final_psnr = {v["name"]: v["psnr"] for v in final["test_views"]}
+        for view in run["test_views"]:
+            nearest = min(order, key=lambda name: float(np.linalg.norm(where[name] - where[view["name"]])))
+            rows.append({"scene": run["scene"], "selector": run["selector"], "seed": int(run["seed"]),
+                         "view": view["name"], "run": view["psnr"], "final_set": final_psnr[view["name"]],
+                         "group": group_of(added[nearest])})
+    return rows
+
+
+def means(values: Dict[str, List[float]]) -> Dict[str, dict]:
+    return {g: {"mean": round(float(np.mean(v)), 3), "views": len(v)} for g, v in values.items() if v}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--root", type=Path, default=Path("benchmarks/results/tune-boost"))
+    ap.add_argument("--arm", default="off")
+    ap.add_argument("--other", default="b3", help="an arm to compare run PSNR per group with ('' for none)")
+    ap.add_argument("--data-root", type=Path, default=Path("../shared/data"))
+    ap.add_argument("--out", type=Path)
+    args = ap.parse_args()
+    cache: Dict[str, Dict[str, np.ndarray]] = {}
+    report = {}
+    for start in sorted(p.name for p in args.root.iterdir() if (p / args.arm).is_dir()):
+        rows = view_rows(args.root, start, args.arm, args.data_root, cache)
+        cost: Dict[str, List[float]] = defaultdict(list)
+        for r in rows:
+            cost[r["group"]].append(r["final_set"] - r["run"])
+        entry = {"cost_by_group": means({g: cost[g] for g, _, _ in GROUPS})}
+        if args.other and (args.root / start / args.other).is_dir():
+            other = {(r["scene"], r["selector"], r["seed"], r["view"]): r
+                     for r in view_rows(args.root, start, args.other, args.data_root, cache)}
+            diff: Dict[str, List[float]] = defaultdict(list)
+            for r in rows:
+                twin = other.get((r["scene"], r["selector"], r["seed"], r["view"]))
+                if r["selector"] == "random" and twin is not None:
+                    diff[r["group"]].append(twin["run"] - r["run"])
+            entry[f"random_run_{args.other}_minus_{args.arm}_by_group"] = means({g: diff[g] for g, _, _ in GROUPS})
+        report[start] = entry
+        print(f"== {start} ({len(rows)} test views of {args.arm} runs)")
+        for g, _, _ in GROUPS:
+            c = entry["cost_by_group"].get(g)
+            d = entry.get(f"random_run_{args.other}_minus_{args.arm}_by_group", {}).get(g)
+            print(f"  nearest view {g:>13}: cost {c['mean']:+.2f} dB ({c['views']} views)" if c else f"  {g}: none",
+                  f"| random run {args.other} - {args.arm} {d['mean']:+.2f} ({d['views']})" if d else "")
+    write_json_atomic(args.out or args.root / "cost_by_view.json", report)
+
+
+if __name__ == "__main__":
+    main()
