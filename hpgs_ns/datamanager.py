@@ -90,7 +90,8 @@ class ActiveDatamanagerConfig(FullImageDatamanagerConfig):
     """Each pass over the active views holds a view this many times while it trails the active views' mean number
     of training draws by more than one, so a view added late catches up on its share of the steps instead of being seen as
     often as the rest from then on (a view added at step 18400 of 20000 otherwise gets ~1/20 of 1600 steps). 1:
-    every view once a pass (off). An option to pilot (issue #46), not a tuned default."""
+    every view once a pass (off, the default: on the tuning scenes more draws for late views moved error from the
+    initial views' surroundings to theirs without lowering it, docs/lab/late-view-boost.md)."""
     def __post_init__(self) -> None:
         # tyro builds this config while it parses the command line: a value that makes no sense is a one-line error
         # before nerfstudio prints the config or makes a run folder. (A config.yml is read without __init__.)
