@@ -1,0 +1,49 @@
+"""benchmarks/late_view_boost.py: a trainer pilot's arm against `off`, paired by (scene, selector, seed)."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture()
+def pilots():
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    try:
+        import late_view_boost
+        yield late_view_boost
+    finally:
+        sys.path.remove(str(REPO / "benchmarks"))
+
+
+def write(root: Path, arm: str, scene: str, selector: str, seed: int, run: float, final: float, wall: float = 100.0):
+    folder = root / "auto" / arm / scene / "fisherrf" / selector
+    for path, psnr in ((folder / f"seed{seed}.json", run), (folder / "final-set" / f"seed{seed}.json", final)):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps({"scene": scene, "seed": seed, "test": {"psnr": psnr},
+                                    "timing": {"wall_seconds": wall}}))
+
+
+def test_an_arm_is_paired_with_off_and_judged_by_the_plans_rule(tmp_path, pilots):
+    # off: schedule cost 1.0 everywhere; arm: runs +0.5 (a), +0.3 (b) higher, final-sets unchanged -> cost 0.5 / 0.7
+    for scene, up in (("a", 0.5), ("b", 0.3)):
+        for sel in ("random", "hpgs"):
+            for seed in (0, 1):
+                write(tmp_path, "off", scene, sel, seed, 20.0 + seed, 21.0 + seed)
+                write(tmp_path, "r16", scene, sel, seed, 20.0 + seed + up, 21.0 + seed, wall=110.0)
+    write(tmp_path, "r16", "c", "random", 0, 30.0, 31.0)  # no off run to pair with: left out
+    out = pilots.compare(tmp_path / "auto", "off", "r16")
+    assert out["gain"]["pairs"] == 8 and out["gain"]["mean"] == pytest.approx(0.4)
+    assert out["gain_by_selector"]["hpgs"]["mean"] == pytest.approx(0.4)
+    assert out["schedule_cost"]["off/random"]["mean"] == pytest.approx(1.0)
+    assert out["schedule_cost"]["r16/hpgs"]["mean"] == pytest.approx(0.6)
+    assert out["random_final_set_difference"]["mean"] == pytest.approx(0.0)
+    assert out["run_wall_s"] == {"off": 100.0, "r16": 110.0}
+    assert out["per_scene_gain"] == {"a": 0.5, "b": 0.3}
+    # two scenes both up: the exact sign-flip p over 2 scene means is 2/4 = 0.5, so the rule (p < 0.1) is not met
+    assert out["gain"]["p"] == pytest.approx(0.5) and out["decision"] == "rule not met"
