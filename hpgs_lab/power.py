@@ -243,17 +243,18 @@ def _sd(value: Optional[float]) -> str:
 
 
 def power_section(rows: Sequence[RunResult], effects: Sequence[float] = EFFECTS_DB, target: float = TARGET,
-                  n_sims: int = 1000, seed: int = 0) -> str:
+                  n_sims: int = 1000, seed: int = 0, planned: Optional[Dict[str, int]] = None) -> str:
     """Markdown: per protocol, the variance components with what they came from, the power to detect each of
     `effects` (dB) with the current scenes x seeds, and the scenes or seeds that would reach `target`.
 
     `rows` are the runs as compared (`report.paired.comparable`); "" when no protocol has the runs to tell
-    the components apart.
+    the components apart. `planned`: protocol -> the number m of primary comparisons Holm adjusts together; the
+    power is then that of p < 0.05 / m (Bonferroni's, a lower bound on Holm's).
     """
     found = [c for c in (variance_components(rows, p) for p in sorted({r.protocol for r in rows})) if c]
     if not found:
         return ""
-    sim = dict(n_sims=n_sims, seed=seed)
+    planned = planned or {}
     lines = [
         "SDs of a paired PSNR gain (dB), pooled over every pair of selectors in a protocol (one-way random-effects "
         "ANOVA; in brackets the range over pairs alone). The seed SD includes the test views' noise, shown on its "
@@ -268,22 +269,25 @@ def power_section(rows: Sequence[RunResult], effects: Sequence[float] = EFFECTS_
                      f"({c.tau_range[0]:.2f}-{c.tau_range[1]:.2f}) | {c.sigma_seed:.2f} "
                      f"({c.sigma_range[0]:.2f}-{c.sigma_range[1]:.2f}) | {view} | {_sd(c.view_noise)} |")
     lines += [
-        "", f"Power of a primary comparison (interval above 0 and p < 0.05) to find a true gain, from {n_sims} "
+        "", f"Power of a primary comparison (interval above 0 and p < 0.05 / m, m the protocol's planned comparisons "
+        f"that Holm adjusts together) to find a true gain, from {n_sims} "
         "simulated benchmarks with the pooled SDs (and with the largest per-pair SDs), and the scenes or seeds that would "
         f"reach {target:.0%}:", "",
-        "| protocol | scenes x seeds | true gain | power | largest per-pair SDs | scenes for 80% (same seeds) "
+        "| protocol | m | scenes x seeds | true gain | power | largest per-pair SDs | scenes for 80% (same seeds) "
         "| seeds for 80% (same scenes) |",
-        "|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for c in found:
         n_scenes, n_seeds = c.design
+        m = max(int(planned.get(c.protocol, 1)), 1)
+        sim = dict(n_sims=n_sims, seed=seed, alpha=0.05 / m)
         for effect in effects:
             power = simulate_power(effect, n_scenes, n_seeds, c.tau, c.sigma_seed, **sim)
             worst = simulate_power(effect, n_scenes, n_seeds, c.tau_range[1], c.sigma_range[1], **sim)
             more_scenes = _needed(scenes_needed(effect, n_seeds, c.tau, c.sigma_seed, target, **sim), MAX_SCENES)
             more_seeds = (f"none ({n_scenes} scenes)" if n_scenes < MIN_SCENES else
                           _needed(seeds_needed(effect, n_scenes, c.tau, c.sigma_seed, target, **sim), MAX_SEEDS))
-            lines.append(f"| {c.protocol} | {n_scenes} x {n_seeds} | {effect:+.1f} dB | {power:.0%} | {worst:.0%} | "
+            lines.append(f"| {c.protocol} | {m} | {n_scenes} x {n_seeds} | {effect:+.1f} dB | {power:.0%} | {worst:.0%} | "
                          f"{more_scenes} | {more_seeds} |")
     rough = [c.protocol for c in found if c.n_scenes < MIN_SCENES]
     if rough:

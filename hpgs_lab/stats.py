@@ -228,8 +228,9 @@ def holm(pvalues: Mapping[str, float]) -> Dict[str, float]:
 class Comparison:
     """Selector vs baseline on one protocol and metric. Gains are positive when `selector` is better.
 
-    `p` is the sign-flip p over scenes; `p_adjusted` equals `p` for a primary comparison and is Holm-adjusted
-    (over the non-primary comparisons of the same `compare` call) otherwise. `verdict` uses `p_adjusted`.
+    `p` is the sign-flip p over scenes; `p_adjusted` is Holm-adjusted over the non-primary comparisons of the same
+    `compare` call, and for a primary one equals `p` or (`compare(holm_primary=True)`) is Holm-adjusted over the
+    primary ones. `verdict` uses `p_adjusted`.
     """
 
     selector: str
@@ -270,11 +271,13 @@ def compare(
     level: float = 0.95,
     alpha: float = 0.05,
     seed: int = 0,
+    holm_primary: bool = False,
 ) -> List[Comparison]:
     """One Comparison per (selector, baseline) in `pairs` (then any `primary` pair not among them), in that order.
 
-    Primary pairs are judged on their unadjusted p; all others are Holm-adjusted together. A pair without a
-    common (scene, seed) gets NaN numbers and the verdict "no paired runs" (and is not counted by Holm).
+    Primary pairs are judged on their unadjusted p, or with `holm_primary` on their p Holm-adjusted over the
+    primary pairs; all others are Holm-adjusted together. A pair without a common (scene, seed) gets NaN numbers
+    and the verdict "no paired runs" (and is not counted by Holm).
     """
     _check_metric(metric)
     rows = list(rows)
@@ -301,10 +304,12 @@ def compare(
         raw.append((a, b, len(gains), sum(len(g) for g in gains.values()), est, lo, hi, p, per_scene))
 
     adjusted = holm({f"{r[0]}\0{r[1]}": r[7] for r in raw if (r[0], r[1]) not in primary_set})
+    if holm_primary:
+        adjusted.update(holm({f"{r[0]}\0{r[1]}": r[7] for r in raw if (r[0], r[1]) in primary_set}))
     out = []
     for a, b, n_scenes, n_pairs, est, lo, hi, p, per_scene in raw:
         is_primary = (a, b) in primary_set
-        p_adj = p if is_primary else adjusted[f"{a}\0{b}"]
+        p_adj = p if is_primary and not holm_primary else adjusted[f"{a}\0{b}"]
         v = NO_PAIRS if n_scenes == 0 else verdict(a, b, lo, hi, p_adj, alpha)
         out.append(
             Comparison(a, b, protocol, metric, n_scenes, n_pairs, est, lo, hi, p, p_adj, is_primary, v, per_scene)
@@ -326,7 +331,9 @@ def _p(c: Comparison) -> str:
     if not np.isfinite(c.p):
         return "n/a"
     if c.primary:
-        return f"{c.p:.3g} (primary)"
+        if c.p_adjusted == c.p:
+            return f"{c.p:.3g} (primary)"
+        return f"{c.p_adjusted:.3g} (primary, Holm; raw {c.p:.3g})"
     return f"{c.p_adjusted:.3g} (Holm; raw {c.p:.3g})"
 
 

@@ -16,10 +16,10 @@ from pathlib import Path
 from typing import Dict, List, Optional
 
 from hpgs_lab.power import power_section
-from hpgs_lab.report.paired import comparable, comparison_plan, paired_report, verdict_sentence
+from hpgs_lab.report.paired import comparable, comparison_plan, paired_report, planned_comparisons, verdict_sentence
 from hpgs_lab.report.paper_table import hpgs_paper_table
 from hpgs_lab.report.plots import camera_map, gain_plot, make_plots, stress_plot
-from hpgs_lab.report.schedule import schedule_cost_table
+from hpgs_lab.report.schedule import final_set_rows, schedule_cost_table
 from hpgs_lab.report.tables import (
     device_counts,
     markdown_table,
@@ -34,6 +34,7 @@ from hpgs_ns.atomic_write import write_text_atomic
 
 DEFAULT_RESULTS_PAGE = Path("docs/results.md")
 SCHEDULE_TITLE = "**Schedule cost (final-set − run)**"
+VIEWS_ALONE_TITLE = "### By their views alone (final-sets)"
 
 
 def write_report(out: Path, results_page: Optional[Path] = None) -> List[Path]:
@@ -41,11 +42,18 @@ def write_report(out: Path, results_page: Optional[Path] = None) -> List[Path]:
     Returns the files written."""
     rows = load_results(out)
     written = []
-    schedule = schedule_cost_table(rows, load_final_sets(out))
+    final_sets = load_final_sets(out)
+    schedule = schedule_cost_table(rows, final_sets)
     table = markdown_table(rows) + (f"\n{SCHEDULE_TITLE}\n\n{schedule}" if schedule else "")
-    sections = {"table.md": table, "paired.md": paired_report(rows), "work.md": work_table(rows),
+    paired = paired_report(rows)
+    views_alone = paired_report(final_set_rows(rows, final_sets))
+    if views_alone:  # the second ranking: each run's final views trained from step 0, compared the same way
+        paired += (f"\n{VIEWS_ALONE_TITLE}\n\nThe same comparisons on the runs' final-sets (each run's final views "
+                   "trained from step 0 with its seed): which selector picks the better views, apart from when they "
+                   f"arrived.\n\n{views_alone}")
+    sections = {"table.md": table, "paired.md": paired, "work.md": work_table(rows),
                 "noise.md": noise_table(rows), "throughput.md": throughput_table(rows), "stress.md": stress_table(rows),
-                "power.md": power_section(comparable(rows)), "hpgs_paper.md": hpgs_paper_table(rows)}
+                "power.md": power_section(comparable(rows), planned=planned_comparisons(rows)), "hpgs_paper.md": hpgs_paper_table(rows)}
     for name, text in sections.items():
         if text:
             written.append(write_text_atomic(out / name, text))

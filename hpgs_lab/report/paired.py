@@ -6,13 +6,14 @@ seen (`comparison_plan`).
 
 from __future__ import annotations
 
-from typing import Dict, List, Sequence, Tuple
+from typing import List, Sequence, Tuple
 
 from hpgs_lab import stats
 from hpgs_lab.report.tables import METRICS, bench_order, scenes_table
 from hpgs_lab.results import RunResult
 
 BASELINE = "random"
+SECOND_BASELINE = "farthest"
 
 
 def comparable(rows: Sequence[RunResult]) -> List[RunResult]:
@@ -20,28 +21,25 @@ def comparable(rows: Sequence[RunResult]) -> List[RunResult]:
     return [r for r in rows if not r.repeat and not r.smoke and "+" not in r.scene]
 
 
-def comparison_plan(rows: Sequence[RunResult], protocol: str,
-                    default: str = "hpgs") -> Tuple[List[Tuple[str, str]], List[Tuple[str, str]]]:
+def comparison_plan(rows: Sequence[RunResult], protocol: str) -> Tuple[List[Tuple[str, str]], List[Tuple[str, str]]]:
     """(primary, other) comparisons of one protocol, fixed before looking at any gain: each selector against
-    `random`, and the default selector against the other selector with the highest mean PSNR over scenes; every
-    other pair of selectors is secondary (Holm-adjusted)."""
+    `random` and against `farthest` (the two baselines a user weighs a selector against; Holm-adjusted together);
+    every other pair of selectors is secondary (Holm-adjusted among themselves)."""
     order = bench_order()
     selectors = sorted({r.selector for r in rows if r.protocol == protocol and not r.is_reference},
                        key=lambda s: (order.get(s, 99), s))
     primary = [(s, BASELINE) for s in selectors if s != BASELINE and BASELINE in selectors]
-    others = [s for s in selectors if s not in (default, BASELINE)]
-    if default in selectors and others:
-        def scene_mean(sel: str) -> float:
-            by_scene: Dict[str, List[float]] = {}
-            for r in rows:
-                if r.protocol == protocol and r.selector == sel:
-                    by_scene.setdefault(r.scene, []).append(r.test.psnr)
-            return sum(sum(v) / len(v) for v in by_scene.values()) / max(len(by_scene), 1)
-
-        primary.append((default, max(others, key=scene_mean)))
+    primary += [(s, SECOND_BASELINE) for s in selectors
+                if s not in (BASELINE, SECOND_BASELINE) and SECOND_BASELINE in selectors]
     secondary = [(a, b) for i, a in enumerate(selectors) for b in selectors[i + 1:]
                  if (a, b) not in primary and (b, a) not in primary]
     return primary, secondary
+
+
+def planned_comparisons(rows: Sequence[RunResult]) -> dict:
+    """protocol -> how many primary comparisons Holm adjusts together (`comparison_plan`), for the power section."""
+    rows = comparable(rows)
+    return {p: len(comparison_plan([r for r in rows if r.protocol == p], p)[0]) for p in {r.protocol for r in rows}}
 
 
 def paired_report(rows: Sequence[RunResult]) -> str:
@@ -55,8 +53,8 @@ def paired_report(rows: Sequence[RunResult]) -> str:
         if not primary and not secondary:
             continue
         out += [f"#### {protocol} protocol", "", scenes_table(group), ""]
-        if not primary:  # run without `random`: no gain over it to report, every pair Holm-adjusted
-            out += ["No `random` runs in this protocol: every comparison is Holm-adjusted.", ""]
+        if not primary:  # run without `random` and `farthest`: every pair Holm-adjusted
+            out += ["No `random` or `farthest` runs in this protocol: every comparison is Holm-adjusted.", ""]
         # The code hash covers each selector's own files, so it is counted per selector
         versions = max(len({(r.provenance.settings or {}).get("code") for r in group if r.selector == sel} - {None})
                        for sel in {r.selector for r in group})
@@ -68,7 +66,8 @@ def paired_report(rows: Sequence[RunResult]) -> str:
                     stats.scene_table(stats.scene_summaries(gains), "psnr"), ""]
         sentences = []
         for metric in METRICS:
-            comparisons = stats.compare(group, protocol, primary + secondary, metric=metric, primary=primary)
+            comparisons = stats.compare(group, protocol, primary + secondary, metric=metric, primary=primary,
+                                        holm_primary=True)
             out += [f"**{metric.upper()}**", "", stats.comparison_table(comparisons), ""]
             if metric == "psnr":
                 sentences = [verdict_sentence(c) for c in comparisons if c.n_scenes]

@@ -16,6 +16,7 @@ two different orders.
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Dict, List, NamedTuple, Sequence, Tuple
 
 from hpgs_lab import stats
@@ -54,6 +55,13 @@ def schedule_pairs(rows: Sequence[RunResult], final_sets: Sequence[RunResult]) -
             continue
         pairs.append(SchedulePair(run, f))
     return pairs, stale
+
+
+def final_set_rows(rows: Sequence[RunResult], final_sets: Sequence[RunResult]) -> List[RunResult]:
+    """Each current final-set as a row of its run's selector (same scene, protocol and seed), so the paired
+    comparisons can rank the selectors by their views alone."""
+    pairs, _ = schedule_pairs(rows, final_sets)
+    return [dataclasses.replace(p.final, selector=p.run.selector) for p in pairs]
 
 
 def _mean(values: Sequence[float]) -> float:

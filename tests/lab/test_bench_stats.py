@@ -252,6 +252,24 @@ def test_primary_is_unadjusted_and_the_others_are_holm_adjusted_together():
         assert c.verdict == "indistinguishable here"
 
 
+def test_with_holm_primary_the_primary_pairs_are_holm_adjusted_among_themselves():
+    base = noisy_base()
+    rows = rows_for("random", base)
+    rows += rows_for("hpgs", {k: v + 0.7 for k, v in base.items()})
+    rows += rows_for("fisher", {k: v + 0.5 for k, v in base.items()})
+    rows += rows_for("farthest", {k: v + 0.3 for k, v in base.items()})
+    primary = [("hpgs", "random"), ("fisher", "random")]
+    out = compare(rows, "hpgs", [("farthest", "random")], primary=primary, holm_primary=True)
+    by = {c.selector: c for c in out}
+    # two primaries, each raw 1/32: Holm over the two gives 2/32 = 0.0625 > 0.05 though their intervals exclude 0
+    for sel in ("hpgs", "fisher"):
+        assert by[sel].primary and by[sel].p_adjusted == pytest.approx(1 / 16) and by[sel].lo > 0
+        assert by[sel].verdict == "indistinguishable here"
+    # the one secondary is adjusted on its own (m = 1): its raw p
+    assert by["farthest"].p_adjusted == pytest.approx(1 / 32) and by["farthest"].verdict == "farthest better than random"
+    assert "0.0625 (primary, Holm; raw 0.0312)" in comparison_table(out)
+
+
 def test_a_primary_pair_not_listed_in_pairs_is_still_compared():
     base = noisy_base()
     rows = rows_for("random", base) + rows_for("hpgs", {k: v + 0.7 for k, v in base.items()})

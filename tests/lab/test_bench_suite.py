@@ -263,27 +263,42 @@ def rows(gains: dict, scenes=("s1", "s2", "s3", "s4", "s5", "s6"), seeds=(0, 1, 
 def test_primary_comparisons_are_fixed_before_the_gains():
     data = rows({"farthest": 0.2, "fisher": 0.4, "hpgs": 0.1})
     primary, secondary = comparison_plan(data, "fisherrf")
-    assert primary == [("farthest", "random"), ("fisher", "random"), ("hpgs", "random"), ("hpgs", "fisher")]
-    assert secondary == [("farthest", "fisher"), ("farthest", "hpgs")]
+    # each against random and against farthest (the issue-47 plan), whatever the gains; the rest secondary
+    assert primary == [("farthest", "random"), ("fisher", "random"), ("hpgs", "random"), ("fisher", "farthest"),
+                       ("hpgs", "farthest")]
+    assert secondary == [("fisher", "hpgs")]
+
+
+TWELVE = tuple(f"s{i}" for i in range(1, 13))
 
 
 def test_the_report_ranks_only_where_the_interval_and_the_test_allow():
     shift = lambda scene: 1.0 if scene == "s1" else 0.0  # noqa: E731 - one scene only
-    text = paired_report(rows({"farthest": 0.7, "fisher": shift, "hpgs": 0.0}))
-    assert "`farthest` beats `random` (`farthest` - `random` +0.70 dB, 95% CI [+0.70, +0.70], 6 scenes, p = 0.0312, primary)." in text
+    text = paired_report(rows({"farthest": 0.7, "fisher": shift, "hpgs": 0.0}, scenes=TWELVE))
+    # raw p 2/4096 on 12 scenes; Holm over the 5 primary comparisons (3 against random, 2 against farthest) x 5
+    assert "`farthest` beats `random` (`farthest` - `random` +0.70 dB, 95% CI [+0.70, +0.70], 12 scenes, p = 0.00244, primary)." in text
+    assert "`farthest` beats `hpgs` (`hpgs` - `farthest` -0.70 dB" in text
     assert "`fisher` and `random` are indistinguishable here" in text
     assert "`hpgs` and `random` are indistinguishable here (`hpgs` - `random` +0.00 dB" in text
     assert "| s1 | 60 | 9 | 0, 1, 2 |" in text  # each scene's training and test views
+    # on 6 scenes the smallest sign-flip p is 2/64: x 5 primary comparisons it cannot pass 0.05
+    six = paired_report(rows({"farthest": 0.7, "fisher": shift, "hpgs": 0.0}))
+    assert "`farthest` and `random` are indistinguishable here (`farthest` - `random` +0.70 dB, 95% CI [+0.70, +0.70], 6 scenes)." in six
+    assert "| farthest vs random | PSNR | 6 | 18 | +0.70 | [+0.70, +0.70] | 0.156 (primary, Holm; raw 0.0312) |" in six
 
 
 def test_a_protocol_without_random_still_gets_its_paired_comparisons():
     # The HP-GS protocol was run with `blend` and `farthest` only: their paired interval must reach the README.
     data = [r for r in rows({"farthest": 0.0, "blend": -0.1}, scenes=("s1", "s2", "s3"), protocol="hpgs")
             if r.selector != "random"]
-    assert comparison_plan(data, "hpgs") == ([], [("farthest", "blend")])
+    assert comparison_plan(data, "hpgs") == ([("blend", "farthest")], [])
     text = paired_report(data)
-    assert "#### hpgs protocol" in text and "every comparison is Holm-adjusted" in text
-    assert "`farthest` and `blend` are indistinguishable here (`farthest` - `blend` +0.10 dB, 95% CI [+0.10, +0.10], 3 scenes)." in text
+    assert "#### hpgs protocol" in text
+    assert "`blend` and `farthest` are indistinguishable here (`blend` - `farthest` -0.10 dB, 95% CI [-0.10, -0.10], 3 scenes)." in text
+    no_baseline = [r for r in data if r.selector != "farthest"] + [
+        make_result(r.scene, "hpgs", "condorcet", r.seed, r.test.psnr + 0.2) for r in data if r.selector == "blend"]
+    assert comparison_plan(no_baseline, "hpgs") == ([], [("condorcet", "blend")])
+    assert "every comparison is Holm-adjusted" in paired_report(no_baseline)
     assert "over `random`, per scene" not in text
 
 
@@ -341,20 +356,41 @@ def test_timing_columns_take_only_runs_that_had_the_gpu_to_themselves():
 
 def test_report_only_writes_the_results_page(tmp_path):
     out = tmp_path / "suite"
-    write_rows(out, rows({"farthest": 0.7, "fisher": 0.1}, seeds=(0, 1)))
+    write_rows(out, rows({"farthest": 0.7, "fisher": 0.1}, scenes=TWELVE, seeds=(0, 1)))
     page = tmp_path / "docs" / "results.md"
     written = write_report(out, results_page=page)
     text = page.read_text()
     assert text.startswith("# Benchmark results: which selector?\n") and page in written
     assert f"Built by `hpgs bench --out {out.as_posix()} --report-only`" in text
-    assert "`farthest` beats `random` (`farthest` - `random` +0.70 dB, 95% CI [+0.70, +0.70], 6 scenes" in text
+    assert "`farthest` beats `random` (`farthest` - `random` +0.70 dB, 95% CI [+0.70, +0.70], 12 scenes" in text
     assert (out / "paired.md").read_text() in text and (out / "fisherrf-paired-gains.png") in written
     assert "Throughput" not in text  # these runs recorded no start times
 
 
+def test_the_report_ranks_the_selectors_by_their_runs_and_by_their_final_sets(tmp_path):
+    from hpgs_lab.results import SourceRun
+
+    out = tmp_path / "suite"
+    views = {"initial_views": ["v0", "v1"], "chosen_views": ["v2"], "num_views_final": 3}
+    runs = [dataclasses.replace(r, **views) for r in rows({"farthest": 0.7, "hpgs": 0.0}, scenes=TWELVE, seeds=(0,))]
+    write_rows(out, runs)
+    # the same views from step 0: hpgs's are 1 dB better than random's, farthest's no better (a schedule cost of 0.7)
+    for r in runs:
+        final = r.test.psnr + {"random": 0.0, "farthest": -0.7, "hpgs": 1.0}[r.selector]
+        make_result(r.scene, r.protocol, "final-set", r.seed, final, final_set_of=SourceRun(r.selector, r.seed, 0, ["v0", "v1", "v2"]),
+                    **views).to_json(out / r.scene / r.protocol / r.selector / "final-set" / f"seed{r.seed}.json")
+    write_report(out)
+    runs_part, views_part = (out / "paired.md").read_text().split("### By their views alone (final-sets)")
+    assert "`farthest` beats `random` (`farthest` - `random` +0.70 dB" in runs_part
+    assert "`farthest` beats `hpgs` (`hpgs` - `farthest` -0.70 dB" in runs_part
+    assert "`hpgs` beats `random` (`hpgs` - `random` +1.00 dB" in views_part
+    assert "`hpgs` beats `farthest` (`hpgs` - `farthest` +1.00 dB" in views_part
+    assert "`farthest` and `random` are indistinguishable here (`farthest` - `random` +0.00 dB" in views_part
+
+
 def test_readme_is_a_deprecated_alias_that_leaves_the_readme_alone(tmp_path, monkeypatch):
     out = tmp_path / "suite"
-    write_rows(out, rows({"farthest": 0.7}, seeds=(0,)))
+    write_rows(out, rows({"farthest": 0.7}, scenes=TWELVE, seeds=(0,)))
     readme = tmp_path / "README.md"
     readme.write_text("# mine\n")
     monkeypatch.chdir(tmp_path)

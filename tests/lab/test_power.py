@@ -139,7 +139,7 @@ def test_the_power_section_and_the_results_page(tmp_path):
     rows = gain_rows({"x": [0, 2], "y": [5], "z": [2, 4]})
     text = power_section(rows, n_sims=200)
     assert "| fisherrf | 1 | 3 | 5 | 1.50 (1.50-1.50) | 1.41 (1.41-1.41) | n/a (no per-view metrics) | n/a |" in text
-    assert "| fisherrf | 3 x 2 | +0.5 dB | 0% | 0% |" in text and "| none (3 scenes) |" in text  # 3 scenes: never
+    assert "| fisherrf | 1 | 3 x 2 | +0.5 dB | 0% | 0% |" in text and "| none (3 scenes) |" in text  # 3 scenes: never
     assert power_section(gain_rows({"x": [1], "y": [2]})) == ""
 
     out = tmp_path / "suite"
@@ -150,3 +150,5 @@ def test_the_power_section_and_the_results_page(tmp_path):
     text = page.read_text()
     assert "**Power**" in text and (out / "power.md").read_text() in text
     assert "| fisherrf | 3 | 6 | 36 |" in text and "(36 paired runs)" in text  # every paired run had its views
+    # two planned comparisons (a and b against random): p < 0.025, which 6 scenes (smallest p 2/64) never reach
+    assert "| fisherrf | 2 | 6 x 2 | +1.0 dB | 0% | 0% |" in text
