@@ -1,11 +1,13 @@
 """Where the schedule cost lands (issue #46): per test view, final-set PSNR - run PSNR, grouped by when the training
-view nearest to it (by camera centre) joined the run.
+view nearest to it (by camera centre) joined the run, and by how much of what it sees the run had from step 0.
 
 Reads runs laid out as `ROOT/<start>/<arm>/<scene>/fisherrf/<selector>/[final-set/]seed<k>.json` (as
 `benchmarks/late_view_boost.py`) and each scene's COLMAP poses from `--data-root/<scene>/sparse/0`. A test view
 nearest an initial view is grouped `initial`; else by the round that added its nearest view (1-8, 9-12, 13-16).
 Prints each start's mean cost per group for one arm, and the other arm's run PSNR minus this one's per group
-(same views, so only for selectors whose views do not depend on training, e.g. `random`); writes JSON.
+(same views, so only for selectors whose views do not depend on training, e.g. `random`). Then by geometry: the
+share of the test view's COLMAP points (the model's tracks) that an initial view observes, in thirds of the test
+views, with the correlation of that share and the cost within each (scene, selector). Writes JSON.
 
     python benchmarks/schedule_cost_views.py [--root benchmarks/results/tune-boost] [--arm off] [--other b3] \
         [--data-root ../shared/data] [--out ROOT/cost_by_view.json]
@@ -22,7 +24,7 @@ from typing import Dict, List
 import numpy as np
 
 from hpgs_ns.atomic_write import write_json_atomic
-from hpgs_ns.scenes.colmap_model import read_images
+from hpgs_ns.scenes.colmap_model import read_images, read_points3D
 
 GROUPS = (("initial", 0, 0), ("rounds 1-8", 1, 8), ("rounds 9-12", 9, 12), ("rounds 13-16", 13, 16))
 
@@ -35,12 +37,26 @@ def centres(data_root: Path, scene: str, cache: Dict[str, Dict[str, np.ndarray]]
     return cache[scene]
 
 
+def observed(data_root: Path, scene: str, cache: Dict[str, Dict[str, set]]) -> Dict[str, set]:
+    """{'images/<name>': ids of the COLMAP points that image observes} from the scene's model's tracks."""
+    if scene not in cache:
+        model = data_root / scene / "sparse" / "0"
+        names = {i: f"images/{im.name}" for i, im in (read_images(model) or {}).items()}
+        seen: Dict[str, set] = defaultdict(set)
+        for pid, point in (read_points3D(model) or {}).items():
+            for iid in set(point.image_ids.tolist()):
+                seen[names[iid]].add(pid)
+        cache[scene] = seen
+    return cache[scene]
+
+
 def group_of(round_added: int) -> str:
     return next(name for name, lo, hi in GROUPS if lo <= round_added <= hi)
 
 
-def view_rows(root: Path, start: str, arm: str, data_root: Path, cache) -> List[dict]:
-    """One row per (run, test view): its run PSNR, its final-set PSNR and its nearest training view's round."""
+def view_rows(root: Path, start: str, arm: str, data_root: Path, cache, tracks=None) -> List[dict]:
+    """One row per (run, test view): its run PSNR, its final-set PSNR, its nearest training view's round and the
+    share of its COLMAP points an initial view observes (None without points)."""
     rows = []
     for path in sorted((root / start / arm).glob("*/fisherrf/*/seed*.json")):
         final_path = path.parent / "final-set" / path.name
@@ -51,12 +67,36 @@ def view_rows(root: Path, start: str, arm: str, data_root: Path, cache) -> List[
         order = list(run["initial_views"]) + list(run["chosen_views"])
         added = {name: max(i - len(run["initial_views"]) + 1, 0) for i, name in enumerate(order)}
         final_psnr = {v["name"]: v["psnr"] for v in final["test_views"]}
+        seen = observed(data_root, run["scene"], tracks if tracks is not None else {})
+        at_start = set().union(*(seen[name] for name in run["initial_views"]))
         for view in run["test_views"]:
+            points = seen[view["name"]]
             nearest = min(order, key=lambda name: float(np.linalg.norm(where[name] - where[view["name"]])))
             rows.append({"scene": run["scene"], "selector": run["selector"], "seed": int(run["seed"]),
                          "view": view["name"], "run": view["psnr"], "final_set": final_psnr[view["name"]],
-                         "group": group_of(added[nearest])})
+                         "group": group_of(added[nearest]),
+                         "initial_share": len(points & at_start) / len(points) if points else None})
     return rows
+
+
+def geometry(rows: List[dict]) -> dict:
+    """Cost by thirds of the share seen from step 0, and its correlation with the cost within (scene, selector)."""
+    rows = [r for r in rows if r["initial_share"] is not None]
+    share = np.array([r["initial_share"] for r in rows])
+    cost = np.array([r["final_set"] - r["run"] for r in rows])
+    edges = np.quantile(share, [0, 1 / 3, 2 / 3, 1])
+    thirds = []
+    for k in range(3):
+        inside = (share >= edges[k]) & ((share < edges[k + 1]) if k < 2 else (share <= edges[k + 1]))
+        thirds.append({"share": [round(float(edges[k]), 3), round(float(edges[k + 1]), 3)],
+                       "mean": round(float(cost[inside].mean()), 3), "views": int(inside.sum())})
+    key = [(r["scene"], r["selector"]) for r in rows]
+    d_share, d_cost = share.copy(), cost.copy()
+    for k in set(key):
+        m = np.array([x == k for x in key])
+        d_share[m] -= share[m].mean()
+        d_cost[m] -= cost[m].mean()
+    return {"thirds": thirds, "within_corr": round(float(np.corrcoef(d_share, d_cost)[0, 1]), 3)}
 
 
 def means(values: Dict[str, List[float]]) -> Dict[str, dict]:
@@ -72,22 +112,24 @@ def main() -> None:
     ap.add_argument("--out", type=Path)
     args = ap.parse_args()
     cache: Dict[str, Dict[str, np.ndarray]] = {}
+    tracks: Dict[str, Dict[str, set]] = {}
     report = {}
     for start in sorted(p.name for p in args.root.iterdir() if (p / args.arm).is_dir()):
-        rows = view_rows(args.root, start, args.arm, args.data_root, cache)
+        rows = view_rows(args.root, start, args.arm, args.data_root, cache, tracks)
         cost: Dict[str, List[float]] = defaultdict(list)
         for r in rows:
             cost[r["group"]].append(r["final_set"] - r["run"])
         entry = {"cost_by_group": means({g: cost[g] for g, _, _ in GROUPS})}
         if args.other and (args.root / start / args.other).is_dir():
             other = {(r["scene"], r["selector"], r["seed"], r["view"]): r
-                     for r in view_rows(args.root, start, args.other, args.data_root, cache)}
+                     for r in view_rows(args.root, start, args.other, args.data_root, cache, tracks)}
             diff: Dict[str, List[float]] = defaultdict(list)
             for r in rows:
                 twin = other.get((r["scene"], r["selector"], r["seed"], r["view"]))
                 if r["selector"] == "random" and twin is not None:
                     diff[r["group"]].append(twin["run"] - r["run"])
             entry[f"random_run_{args.other}_minus_{args.arm}_by_group"] = means({g: diff[g] for g, _, _ in GROUPS})
+        entry["by_initial_share"] = geometry(rows)
         report[start] = entry
         print(f"== {start} ({len(rows)} test views of {args.arm} runs)")
         for g, _, _ in GROUPS:
@@ -95,6 +137,11 @@ def main() -> None:
             d = entry.get(f"random_run_{args.other}_minus_{args.arm}_by_group", {}).get(g)
             print(f"  nearest view {g:>13}: cost {c['mean']:+.2f} dB ({c['views']} views)" if c else f"  {g}: none",
                   f"| random run {args.other} - {args.arm} {d['mean']:+.2f} ({d['views']})" if d else "")
+        geo = entry["by_initial_share"]
+        for third in geo["thirds"]:
+            print(f"  share seen from step 0 {third['share'][0]:.2f}-{third['share'][1]:.2f}: cost {third['mean']:+.2f} dB "
+                  f"({third['views']} views)")
+        print(f"  within (scene, selector): corr(share, cost) {geo['within_corr']:+.3f}")
     write_json_atomic(args.out or args.root / "cost_by_view.json", report)
 
 
