@@ -95,6 +95,12 @@ class HpgsSplatfactoModelConfig(SplatfactoModelConfig):
     rasterizer: Literal["auto", "gsplat", "cpu"] = "auto"
     """Which rasterizer renders the splat: gsplat's CUDA kernels, the pure-PyTorch CPU twin, or auto (gsplat when
     CUDA is available)."""
+    sh_degree_by_age: bool = False
+    """Open each Gaussian's spherical-harmonic degrees with its own age, one degree per sh-degree-interval steps
+    since a training view first saw it, instead of with the run's step: content first seen after step 0 then gets
+    its base colour before its view-dependent terms, as the first views' content did (a late view's content is
+    otherwise fitted with every coefficient at once from a few views). Off: splatfacto's one degree for all. An
+    option to pilot (issue #46); with no view added it still acts, on Gaussians first seen after step 0."""
 
 
 class HpgsSplatfactoModel(SplatfactoModel):
@@ -146,6 +152,44 @@ class HpgsSplatfactoModel(SplatfactoModel):
         }
 
     # ---- rendering helpers for selection -------------------------------------------------------------------
+
+    # ---- SH degrees by a Gaussian's age (sh-degree-by-age) -----------------------------------------------------
+
+    SEEN_AT = "seen_at"
+    """Strategy-state key: per Gaussian, 1 + the model step at which a training render first saw it (0: not yet).
+    In the strategy's state, gsplat's split, duplicate and prune carry it (children inherit their parent's age),
+    add_gaussians starts new rows at 0, a restart clears it, and checkpoints keep it."""
+
+    def seen_at(self) -> torch.Tensor:
+        """[N] long: `SEEN_AT`, created (all 0) when the strategy's state has none yet."""
+        seen = self.strategy_state.get(self.SEEN_AT)
+        if seen is None:
+            seen = torch.zeros(self.num_points, dtype=torch.long, device=self.means.device)
+            self.strategy_state[self.SEEN_AT] = seen
+        if seen.shape[0] != self.num_points:
+            raise RuntimeError(f"sh-degree-by-age: {seen.shape[0]} ages for {self.num_points} Gaussians")
+        return seen
+
+    def sh_age_mask(self) -> Optional[torch.Tensor]:
+        """[N, K - 1] 0/1: which of each Gaussian's higher SH coefficients are open at this step under
+        sh-degree-by-age (degree l opens l x sh-degree-interval steps after the Gaussian was first seen; one not
+        yet seen has only its base colour). None when the option is off or the model has no SH."""
+        if not self.config.sh_degree_by_age or self.config.sh_degree <= 0:
+            return None
+        seen = self.seen_at()
+        age = torch.where(seen > 0, self.step + 1 - seen, torch.zeros_like(seen))
+        degree = torch.clamp(age // self.clocked(self.config.sh_degree_interval), max=self.config.sh_degree)
+        rest = self.gauss_params["features_rest"]
+        # the SH coefficient k = 1, 2, ... belongs to degree floor(sqrt(k))
+        coefficient_degree = torch.arange(1, rest.shape[1] + 1, device=rest.device).sqrt().floor().long()
+        return (coefficient_degree[None, :] <= degree[:, None]).to(rest.dtype)
+
+    @torch.no_grad()
+    def mark_seen(self, radii: torch.Tensor) -> None:
+        """Record the Gaussians a training render saw (radii [C, N] or [C, N, 2] > 0) for the first time."""
+        visible = (radii > 0).reshape(radii.shape[0], radii.shape[1], -1).any(-1).any(0)
+        seen = self.seen_at()
+        seen.masked_fill_(visible & (seen == 0), int(self.step) + 1)
 
     @property
     def active_sh_degree(self) -> Optional[int]:
@@ -438,6 +482,11 @@ class HpgsSplatfactoModel(SplatfactoModel):
         `torch.compile`d function (recompiled for every batch shape and device) and renders one camera at a time.
         tests/test_render_matches_splatfacto.py keeps this equal to it."""
         params = {k: v if crop_ids is None else v[crop_ids] for k, v in self.gauss_params.items()}
+        mask = self.sh_age_mask() if self.training else None
+        if mask is not None:
+            # Closed coefficients get no gradient, so they stay at their start (0) until they open: renders
+            # outside training need no mask.
+            params["features_rest"] = params["features_rest"] * (mask if crop_ids is None else mask[crop_ids])[..., None]
         return rasterize_splat(
             self._rasterize, params, self.active_sh_degree,
             viewmats=world_to_camera(camera_to_worlds).to(self.device), Ks=Ks.to(self.device), width=width,
@@ -478,6 +527,8 @@ class HpgsSplatfactoModel(SplatfactoModel):
 
         render_mode = "RGB+ED" if (self.config.output_depth_during_training or not self.training) else "RGB"
         render, alpha, self.info = self._rasterize_cameras(camera_to_world, K, W, H, render_mode, crop_ids)
+        if self.training and self.config.sh_degree_by_age:
+            self.mark_seen(self.info["radii"])
         if self.training:
             self.strategy.step_pre_backward(
                 self.gauss_params, self.optimizers, self.strategy_state, self.step, self.info
