@@ -61,6 +61,8 @@ class HpgsPipeline(VanillaPipeline):
             signature["after-add.restart-active-starts"] = str(bool(selection.after_add.restart_active_starts))
         if getattr(self.datamanager.config, "late_view_boost", 1) != 1:  # passes weighted by visits
             signature["late-view-boost"] = str(self.datamanager.config.late_view_boost)
+        if getattr(config.model, "sh_degree_by_age", False):  # Gaussians' ages decide their open SH terms
+            signature["sh-degree-by-age"] = "True"
         if getattr(self.datamanager.config, "random_points", "cube") != "cube":  # restarts draw the splat's points again
             signature["random-points"] = str(self.datamanager.config.random_points)
         self.datamanager.selection_signature = signature

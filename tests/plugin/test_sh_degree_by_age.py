@@ -87,3 +87,16 @@ def test_ages_ride_through_densification_and_checkpoints(tiny_scene, tmp_path):
     fresh = trainer_for(tiny_scene, tmp_path / "fresh", by_age=True).pipeline.model
     fresh.set_extra_state(saved)
     assert torch.equal(fresh.strategy_state[model.SEEN_AT], model.seen_at())
+
+
+def test_a_restart_forgets_the_ages_and_the_option_is_part_of_the_resume_signature(tiny_scene, tmp_path):
+    trainer = trainer_for(tiny_scene, tmp_path, by_age=True)
+    model = trainer.pipeline.model
+    train(trainer, range(3))
+    assert model.seen_at().any()
+    model.reset_to_initial(3, trainer.optimizers.optimizers)
+    assert not model.seen_at().any() and model.seen_at().shape == (model.num_points,)  # all unseen again
+    assert trainer.pipeline.datamanager.selection_signature["sh-degree-by-age"] == "True"
+    off = trainer_for(tiny_scene, tmp_path / "off", by_age=False)
+    assert "sh-degree-by-age" not in off.pipeline.datamanager.selection_signature
+    assert model.SEEN_AT not in off.pipeline.model.strategy_state  # off: no ages are kept
