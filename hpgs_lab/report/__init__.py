@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Dict, List, Optional
 
 from hpgs_lab.power import power_section
+from hpgs_lab.report.missing import missing_section
 from hpgs_lab.report.paired import comparable, comparison_plan, paired_report, planned_comparisons, verdict_sentence
 from hpgs_lab.report.paper_table import hpgs_paper_table
 from hpgs_lab.report.plots import camera_map, gain_plot, make_plots, stress_plot
@@ -51,7 +52,8 @@ def write_report(out: Path, results_page: Optional[Path] = None) -> List[Path]:
         paired += (f"\n{VIEWS_ALONE_TITLE}\n\nThe same comparisons on the runs' final-sets (each run's final views "
                    "trained from step 0 with its seed): which selector picks the better views, apart from when they "
                    f"arrived.\n\n{views_alone}")
-    sections = {"table.md": table, "paired.md": paired, "work.md": work_table(rows),
+    sections = {"table.md": table, "paired.md": paired, "missing.md": missing_section(rows, final_sets),
+                "work.md": work_table(rows),
                 "noise.md": noise_table(rows), "throughput.md": throughput_table(rows), "stress.md": stress_table(rows),
                 "power.md": power_section(comparable(rows), planned=planned_comparisons(rows)), "hpgs_paper.md": hpgs_paper_table(rows)}
     for name, text in sections.items():
@@ -71,6 +73,8 @@ def results_section(out: Path, sections: Dict[str, str]) -> str:
         parts += [sections["paired.md"]]
     if sections.get("power.md"):
         parts += ["**Power**", "", sections["power.md"]]
+    if sections.get("missing.md"):
+        parts += ["**Runs not in the folder**", "", sections["missing.md"], ""]
     if sections.get("schedule"):  # `schedule.schedule_cost_table`, where runs have final-set references
         parts += [SCHEDULE_TITLE, "", sections["schedule"]]
     if sections.get("hpgs_paper.md"):

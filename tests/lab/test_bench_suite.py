@@ -388,6 +388,37 @@ def test_the_report_ranks_the_selectors_by_their_runs_and_by_their_final_sets(tm
     assert "`farthest` and `random` are indistinguishable here (`farthest` - `random` +0.00 dB" in views_part
 
 
+def test_the_page_lists_the_runs_and_final_sets_the_grid_lacks(tmp_path):
+    from hpgs_lab.results import SourceRun
+
+    out = tmp_path / "suite"
+    views = {"initial_views": ["v0"], "chosen_views": ["v1"], "num_views_final": 2}
+    runs = [dataclasses.replace(r, **views) for r in rows({"farthest": 0.5, "hpgs": 0.1}, scenes=TWELVE, seeds=(0, 1))]
+    # s3 ran a third seed (for every selector but hpgs, which failed there)
+    runs += [dataclasses.replace(r, **views) for r in rows({"farthest": 0.5}, scenes=("s3",), seeds=(2,))]
+    runs = [r for r in runs if (r.scene, r.selector, r.seed) != ("s5", "farthest", 1)]  # stopped before it ended
+    write_rows(out, runs)
+    for r in runs:
+        if (r.scene, r.selector, r.seed) != ("s2", "random", 0):  # its final-set failed
+            source = SourceRun(r.selector, r.seed, 0, ["v0", "v1"])
+            make_result(r.scene, r.protocol, "final-set", r.seed, r.test.psnr + 1, final_set_of=source,
+                        **views).to_json(out / r.scene / r.protocol / r.selector / "final-set" / f"seed{r.seed}.json")
+    page = tmp_path / "results.md"
+    write_report(out, results_page=page)
+    text = page.read_text()
+    assert "**Runs not in the folder**" in text
+    assert "- fisherrf protocol, 2 runs missing: s3/hpgs/seed2, s5/farthest/seed1." in text
+    assert "- fisherrf protocol, 1 final-set missing: s2/random/seed0." in text
+    # nothing missing: no section
+    write_rows(tmp_path / "full", rows({"farthest": 0.5}, scenes=TWELVE, seeds=(0,)))
+    assert "Runs not in the folder" not in write_report_page(tmp_path / "full", tmp_path / "full.md")
+
+
+def write_report_page(out, page):
+    write_report(out, results_page=page)
+    return page.read_text()
+
+
 def test_readme_is_a_deprecated_alias_that_leaves_the_readme_alone(tmp_path, monkeypatch):
     out = tmp_path / "suite"
     write_rows(out, rows({"farthest": 0.7}, scenes=TWELVE, seeds=(0,)))
