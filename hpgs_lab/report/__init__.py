@@ -7,7 +7,7 @@ decided in `paired.md` only (`stats`: runs paired by scene and seed, intervals o
 and spreads are for reading. Where runs have final-set references (`hpgs bench --final-set`), `table.md` and the
 results page also show each run's schedule cost (`schedule`), and `power.md` how likely the comparisons were to
 find a gain of 0.5 or 1 dB (`bench.power`); `hpgs_paper.md` puts protocol-`hpgs` runs beside the HP-GS paper's
-table (`paper_table`).
+table (`paper_table`); `missing.md` names what the folder's grid lacks (`missing`).
 """
 
 from __future__ import annotations
