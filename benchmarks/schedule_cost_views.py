@@ -10,7 +10,10 @@ share of the test view's COLMAP points (the model's tracks) that an initial view
 views, with the correlation of that share and the cost within each (scene, selector). Writes JSON.
 
     python benchmarks/schedule_cost_views.py [--root benchmarks/results/tune-boost] [--arm off] [--other b3] \
-        [--data-root ../shared/data] [--out ROOT/cost_by_view.json]
+        [--data-root ../shared/data] [--out ROOT/cost_by_view.json] [--plot docs/lab/schedule-cost-by-round.png]
+
+`--plot`: the mean cost per round of the nearest view (standard errors), one line per start, with the step each
+round arrived at and where splatfacto's SH degree 1 opens (`--sh-degree-interval`, splatfacto's 1000).
 """
 
 from __future__ import annotations
@@ -74,7 +77,8 @@ def view_rows(root: Path, start: str, arm: str, data_root: Path, cache, tracks=N
             nearest = min(order, key=lambda name: float(np.linalg.norm(where[name] - where[view["name"]])))
             rows.append({"scene": run["scene"], "selector": run["selector"], "seed": int(run["seed"]),
                          "view": view["name"], "run": view["psnr"], "final_set": final_psnr[view["name"]],
-                         "group": group_of(added[nearest]),
+                         "group": group_of(added[nearest]), "round": added[nearest],
+                         "round_steps": [int(r["step"]) for r in run.get("psnr_per_round") or []],
                          "initial_share": len(points & at_start) / len(points) if points else None})
     return rows
 
@@ -110,6 +114,8 @@ def main() -> None:
     ap.add_argument("--other", default="b3", help="an arm to compare run PSNR per group with ('' for none)")
     ap.add_argument("--data-root", type=Path, default=Path("../shared/data"))
     ap.add_argument("--out", type=Path)
+    ap.add_argument("--plot", type=Path)
+    ap.add_argument("--sh-degree-interval", type=int, default=1000)
     args = ap.parse_args()
     cache: Dict[str, Dict[str, np.ndarray]] = {}
     tracks: Dict[str, Dict[str, set]] = {}
@@ -130,6 +136,13 @@ def main() -> None:
                     diff[r["group"]].append(twin["run"] - r["run"])
             entry[f"random_run_{args.other}_minus_{args.arm}_by_group"] = means({g: diff[g] for g, _, _ in GROUPS})
         entry["by_initial_share"] = geometry(rows)
+        by_round: Dict[int, List[float]] = defaultdict(list)
+        for r in rows:
+            by_round[r["round"]].append(r["final_set"] - r["run"])
+        entry["cost_by_round"] = {str(k): {"mean": round(float(np.mean(v)), 3), "views": len(v),
+                                           "se": round(float(np.std(v, ddof=1) / np.sqrt(len(v))), 3) if len(v) > 1 else None}
+                                  for k, v in sorted(by_round.items())}
+        entry["round_steps"] = next((r["round_steps"] for r in rows if r["round_steps"]), [])
         report[start] = entry
         print(f"== {start} ({len(rows)} test views of {args.arm} runs)")
         for g, _, _ in GROUPS:
@@ -143,6 +156,42 @@ def main() -> None:
                   f"({third['views']} views)")
         print(f"  within (scene, selector): corr(share, cost) {geo['within_corr']:+.3f}")
     write_json_atomic(args.out or args.root / "cost_by_view.json", report)
+    if args.plot:
+        plot_rounds(report, args.plot, args.sh_degree_interval)
+
+
+def plot_rounds(report: dict, path: Path, sh_interval: int) -> None:
+    """Mean cost per round of the nearest training view, one line per start."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from hpgs_ns.atomic_write import atomic_path
+
+    fig, ax = plt.subplots(figsize=(8, 4))
+    steps: List[int] = []
+    for start, entry in sorted(report.items()):
+        rounds = sorted(int(k) for k in entry["cost_by_round"])
+        cells = [entry["cost_by_round"][str(k)] for k in rounds]
+        ax.errorbar(rounds, [c["mean"] for c in cells], yerr=[c["se"] or 0 for c in cells], marker="o", capsize=3,
+                    label=f"{start} start")
+        steps = steps or entry.get("round_steps", [])
+    opens = next((k + 1 for k, step in enumerate(steps) if step >= sh_interval), None)  # round k+1 arrives at steps[k]
+    if opens is not None:
+        ax.axvline(opens - 0.5, color="gray", linestyle="--")
+        ax.text(opens - 0.4, ax.get_ylim()[1] * 0.92, f"SH degree 1 opens (step {sh_interval})", color="gray")
+    ax.axhline(0, color="black", linewidth=0.5)
+    labels = ["initial"] + [f"{k}\n{steps[k - 1]}" if k - 1 < len(steps) else str(k) for k in range(1, 17)]
+    ax.set_xticks(range(17), labels, fontsize=7)
+    ax.set_xlabel("round that added the test view's nearest training view (and the step it arrived)")
+    ax.set_ylabel("final-set − run PSNR (dB)")
+    ax.set_title("Where the schedule cost lands (tune6, half scale, random + hpgs orders, seeds 0-2)")
+    ax.legend()
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=120, format="png")
+    plt.close(fig)
 
 
 if __name__ == "__main__":
