@@ -75,6 +75,11 @@ def retyped(tree: Any):
     return st.tuples(st.sampled_from(paths), OTHER_VALUES).map(change)
 
 
+def json_variants(tree: Any):
+    """The bytes of `tree` as a JSON file with one field retyped (`retyped`), or its bytes damaged (`damaged`)."""
+    return st.one_of(retyped(tree).map(lambda t: json.dumps(t).encode()), damaged(json.dumps(tree).encode()))
+
+
 def reads_or_one_line(read: Callable[[], Any], path: Path, errors=(UserError,)) -> None:
     """`read()` returns, or raises one of `errors` whose message is one line naming `path` (or its folder)."""
     try:
@@ -146,7 +151,7 @@ def test_transforms_json_with_a_retyped_field_or_damaged_bytes_reads_or_fails_in
     original = json.loads((capture / "transforms.json").read_text())
 
     @fuzz(60)
-    @given(st.one_of(retyped(original).map(lambda m: json.dumps(m).encode()), damaged(json.dumps(original).encode())))
+    @given(json_variants(original))
     def check(data):
         path.write_bytes(data)
         reads_or_one_line(lambda: HpgsNerfstudioDataParserConfig(data=folder).setup().get_dataparser_outputs("train"),
@@ -285,7 +290,7 @@ def test_damaged_round_logs_read_or_fail_in_one_line(tmp_path):
     path = tmp_path / "selected_views.json"
 
     @fuzz(60)
-    @given(st.one_of(retyped(ROUND_LOG).map(lambda t: json.dumps(t).encode()), damaged(json.dumps(ROUND_LOG).encode())))
+    @given(json_variants(ROUND_LOG))
     def check(data):
         path.write_bytes(data)
         reads_or_one_line(lambda: SelectionLog.read(path), path, RoundLogError)
@@ -304,7 +309,7 @@ def test_damaged_bench_results_read_or_fail_in_one_line(tmp_path):
     path = tmp_path / "seed3.json"
 
     @fuzz(60)
-    @given(st.one_of(retyped(result).map(lambda t: json.dumps(t).encode()), damaged(json.dumps(result).encode())))
+    @given(json_variants(result))
     def check(data):
         path.write_bytes(data)
         reads_or_one_line(lambda: RunResult.from_json(path), path, ResultError)
