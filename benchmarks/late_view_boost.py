@@ -14,32 +14,29 @@ decision rule (gain >= +0.2 dB, p < 0.1, lower schedule cost for every selector)
 from __future__ import annotations
 
 import argparse
-import json
 from collections import defaultdict
 from pathlib import Path
 from statistics import mean
 from typing import Dict, Tuple
 
 from hpgs_lab import stats
+from hpgs_lab.report.schedule import schedule_pairs
+from hpgs_lab.results import RunResult, load_final_sets, load_results
 from hpgs_ns.atomic_write import write_json_atomic
 
 Key = Tuple[str, str, int]  # scene, selector, seed
 
 
-def read_arm(folder: Path) -> Tuple[Dict[Key, dict], Dict[Key, dict]]:
-    """{(scene, selector, seed): result} for the runs and for the final-sets under one arm's folder."""
-    runs, finals = {}, {}
-    for path in sorted(folder.glob("*/fisherrf/*/**/seed*.json")):
-        data = json.loads(path.read_text())
-        final = path.parent.name == "final-set"
-        selector = path.parent.parent.name if final else path.parent.name
-        key = (data["scene"], selector, int(data["seed"]))
-        (finals if final else runs)[key] = data
-    return runs, finals
+def read_arm(folder: Path) -> Tuple[Dict[Key, RunResult], Dict[Key, RunResult]]:
+    """{(scene, selector, seed): result} for the runs (first repeats) under one arm's folder, and for the current
+    final-sets of those runs (`schedule_pairs`: one whose run has other views now is left out)."""
+    runs = {(r.scene, r.selector, r.seed): r for r in load_results(folder) if not r.repeat and not r.is_reference}
+    pairs, _ = schedule_pairs(list(runs.values()), load_final_sets(folder))
+    return runs, {(p.run.scene, p.run.selector, p.run.seed): p.final for p in pairs}
 
 
-def psnr(result: dict) -> float:
-    return float(result["test"]["psnr"])
+def psnr(result: RunResult) -> float:
+    return float(result.test.psnr)
 
 
 def summary(pairs: Dict[Key, float]) -> dict:
@@ -70,7 +67,7 @@ def compare(start_dir: Path, baseline: str, arm: str) -> dict:
     noise = {k: psnr(arm_finals[k]) - psnr(off_finals[k]) for k in keys
              if k[1] == "random" and k in arm_finals and k in off_finals}
     out["random_final_set_difference"] = summary(noise)
-    out["run_wall_s"] = {name: round(mean(float(runs[k]["timing"]["wall_seconds"]) for k in keys), 1)
+    out["run_wall_s"] = {name: round(mean(float(runs[k].timing.wall_seconds) for k in keys), 1)
                          for name, runs in ((baseline, off_runs), (arm, arm_runs))}
     out["per_scene_gain"] = {scene: round(mean(v for k, v in gain.items() if k[0] == scene), 3)
                              for scene in sorted({k[0] for k in keys})}

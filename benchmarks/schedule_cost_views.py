@@ -19,13 +19,14 @@ round arrived at and where splatfacto's SH degree 1 opens (`--sh-degree-interval
 from __future__ import annotations
 
 import argparse
-import json
 from collections import defaultdict
 from pathlib import Path
 from typing import Dict, List
 
 import numpy as np
 
+from hpgs_lab.report.schedule import schedule_pairs
+from hpgs_lab.results import load_final_sets, load_results
 from hpgs_ns.atomic_write import write_json_atomic
 from hpgs_ns.scenes.colmap_model import read_images, read_points3D
 
@@ -61,24 +62,22 @@ def view_rows(root: Path, start: str, arm: str, data_root: Path, cache, tracks=N
     """One row per (run, test view): its run PSNR, its final-set PSNR, its nearest training view's round and the
     share of its COLMAP points an initial view observes (None without points)."""
     rows = []
-    for path in sorted((root / start / arm).glob("*/fisherrf/*/seed*.json")):
-        final_path = path.parent / "final-set" / path.name
-        if not final_path.exists():
-            continue
-        run, final = json.loads(path.read_text()), json.loads(final_path.read_text())
-        where = centres(data_root, run["scene"], cache)
-        order = list(run["initial_views"]) + list(run["chosen_views"])
-        added = {name: max(i - len(run["initial_views"]) + 1, 0) for i, name in enumerate(order)}
-        final_psnr = {v["name"]: v["psnr"] for v in final["test_views"]}
-        seen = observed(data_root, run["scene"], tracks if tracks is not None else {})
-        at_start = set().union(*(seen[name] for name in run["initial_views"]))
-        for view in run["test_views"]:
-            points = seen[view["name"]]
-            nearest = min(order, key=lambda name: float(np.linalg.norm(where[name] - where[view["name"]])))
-            rows.append({"scene": run["scene"], "selector": run["selector"], "seed": int(run["seed"]),
-                         "view": view["name"], "run": view["psnr"], "final_set": final_psnr[view["name"]],
+    folder = root / start / arm
+    for pair in schedule_pairs(load_results(folder), load_final_sets(folder))[0]:
+        run = pair.run
+        where = centres(data_root, run.scene, cache)
+        order = list(run.initial_views) + list(run.chosen_views)
+        added = {name: max(i - len(run.initial_views) + 1, 0) for i, name in enumerate(order)}
+        final_psnr = {v.name: v.psnr for v in pair.final.test_views}
+        seen = observed(data_root, run.scene, tracks if tracks is not None else {})
+        at_start = set().union(*(seen[name] for name in run.initial_views))
+        for view in run.test_views:
+            points = seen[view.name]
+            nearest = min(order, key=lambda name: float(np.linalg.norm(where[name] - where[view.name])))
+            rows.append({"scene": run.scene, "selector": run.selector, "seed": run.seed,
+                         "view": view.name, "run": view.psnr, "final_set": final_psnr[view.name],
                          "group": group_of(added[nearest]), "round": added[nearest],
-                         "round_steps": [int(r["step"]) for r in run.get("psnr_per_round") or []],
+                         "round_steps": [int(r.step) for r in run.psnr_per_round],
                          "initial_share": len(points & at_start) / len(points) if points else None})
     return rows
 

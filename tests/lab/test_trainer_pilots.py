@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
-import json
 import sys
 from pathlib import Path
 
 import pytest
+from helpers import make_result
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -22,11 +22,13 @@ def pilots():
 
 
 def write(root: Path, arm: str, scene: str, selector: str, seed: int, run: float, final: float, wall: float = 100.0):
+    from hpgs_lab.results import SourceRun
+
     folder = root / "auto" / arm / scene / "fisherrf" / selector
-    for path, psnr in ((folder / f"seed{seed}.json", run), (folder / "final-set" / f"seed{seed}.json", final)):
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(json.dumps({"scene": scene, "seed": seed, "test": {"psnr": psnr},
-                                    "timing": {"wall_seconds": wall}}))
+    views = {"initial_views": ["v0"], "chosen_views": ["v1"], "num_views_final": 2}
+    make_result(scene, "fisherrf", selector, seed, run, wall=wall, **views).to_json(folder / f"seed{seed}.json")
+    make_result(scene, "fisherrf", "final-set", seed, final, wall=wall, final_set_of=SourceRun(selector, seed, 0, ["v0", "v1"]),
+                **views).to_json(folder / "final-set" / f"seed{seed}.json")
 
 
 def test_an_arm_is_paired_with_off_and_judged_by_the_plans_rule(tmp_path, pilots):
