@@ -107,3 +107,16 @@ def text_copy(scene: Path, dest: Path) -> Path:
         path.unlink()
     colmap_utils.write_model(cameras, images, points, model, ext=".txt")
     return dest
+
+
+def train_steps(trainer, steps) -> None:
+    """Run trainer steps as nerfstudio's loop does: the callbacks before each iteration, the iteration, the callbacks
+    after (a selection round, densification and the model's step bookkeeping run in them)."""
+    from nerfstudio.engine.callbacks import TrainingCallbackLocation as At
+
+    for step in steps:
+        for callback in trainer.callbacks:
+            callback.run_callback_at_location(step, location=At.BEFORE_TRAIN_ITERATION)
+        trainer.train_iteration(step)
+        for callback in trainer.callbacks:
+            callback.run_callback_at_location(step, location=At.AFTER_TRAIN_ITERATION)

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import torch
 from conftest import require_shared, short_config
+from helpers import train_steps
 
 import hpgs_ns.scenes.triangulate as triangulate
 from hpgs_ns.datamanager import ActiveViewError
@@ -135,20 +136,10 @@ def test_random_mode_is_splatfactos_random_init(tiny_scene, tmp_path):
     assert float(model.means.abs().max()) <= cfg.pipeline.model.random_scale / 2
 
 
-def run_callbacks(trainer, step, location):
-    for callback in trainer.callbacks:
-        callback.run_callback_at_location(step, location=location)
-
-
 def test_add_gaussians_grows_the_splat_its_optimizers_and_strategy_state(tiny_scene, tmp_path):
-    from nerfstudio.engine.callbacks import TrainingCallbackLocation as At
-
     trainer = setup_trainer(short_config(tiny_scene, tmp_path, steps=10, rounds=0))
     model, optimizers = trainer.pipeline.model, trainer.optimizers.optimizers
-    for step in range(2):
-        run_callbacks(trainer, step, At.BEFORE_TRAIN_ITERATION)
-        trainer.train_iteration(step)
-        run_callbacks(trainer, step, At.AFTER_TRAIN_ITERATION)
+    train_steps(trainer, range(2))
     n, k = model.num_points, 7
     before = {name: p.detach().clone() for name, p in model.gauss_params.items()}
     moments = {name: optimizers[name].state[model.gauss_params[name]]["exp_avg"].clone() for name in before}
@@ -172,9 +163,7 @@ def test_add_gaussians_grows_the_splat_its_optimizers_and_strategy_state(tiny_sc
     for key in ("grad2d", "count"):
         assert model.strategy_state[key].shape[0] == n + k and not model.strategy_state[key][n:].any()
     # training goes on with the grown splat: the new Gaussians get gradients and move
-    run_callbacks(trainer, 2, At.BEFORE_TRAIN_ITERATION)
-    trainer.train_iteration(2)
-    run_callbacks(trainer, 2, At.AFTER_TRAIN_ITERATION)
+    train_steps(trainer, [2])
     assert model.num_points == n + k and model.strategy_state["grad2d"].shape[0] == n + k
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import torch
 from conftest import short_config
-from nerfstudio.engine.callbacks import TrainingCallbackLocation as At
+from helpers import train_steps
 
 
 def trainer_for(scene, out, by_age: bool, steps: int = 12):
@@ -16,16 +16,6 @@ def trainer_for(scene, out, by_age: bool, steps: int = 12):
     trainer = cfg.setup(local_rank=0, world_size=1)
     trainer.setup()
     return trainer
-
-
-def train(trainer, steps):
-    for step in steps:
-        for location in (At.BEFORE_TRAIN_ITERATION,):
-            for callback in trainer.callbacks:
-                callback.run_callback_at_location(step, location=location)
-        trainer.train_iteration(step)
-        for callback in trainer.callbacks:
-            callback.run_callback_at_location(step, location=At.AFTER_TRAIN_ITERATION)
 
 
 def test_the_mask_opens_one_degree_per_interval_of_a_gaussians_age(tiny_scene, tmp_path):
@@ -50,7 +40,7 @@ def test_gaussians_added_late_keep_their_view_dependent_terms_closed_until_they_
     for by_age in (False, True):
         trainer = trainer_for(tiny_scene, tmp_path / str(by_age), by_age)
         model = trainer.pipeline.model
-        train(trainer, range(6))
+        train_steps(trainer, range(6))
         n = model.num_points
         if by_age:
             seen = model.seen_at()
@@ -58,7 +48,7 @@ def test_gaussians_added_late_keep_their_view_dependent_terms_closed_until_they_
             assert (seen == 1).sum() > n // 2  # most of the splat is in view from step 0
         xyz = model.means.detach()[:5] + 0.001  # new Gaussians among visible ones, their SH bands zero
         model.add_gaussians(xyz, torch.full((5, 3), 128, dtype=torch.uint8), trainer.optimizers)
-        train(trainer, range(6, 8))
+        train_steps(trainer, range(6, 8))
         rest[by_age] = model.gauss_params["features_rest"].detach().clone()
         if by_age:
             # the new rows were first seen at step 6 or 7 (or not yet): ages 0-1 < 2, so only their base colour trained
@@ -76,7 +66,7 @@ def test_ages_ride_through_densification_and_checkpoints(tiny_scene, tmp_path):
 
     trainer = trainer_for(tiny_scene, tmp_path, by_age=True)
     model = trainer.pipeline.model
-    train(trainer, range(3))
+    train_steps(trainer, range(3))
     seen = model.seen_at().clone()
     pick = torch.zeros(model.num_points, dtype=torch.bool)
     pick[:4] = True
@@ -92,7 +82,7 @@ def test_ages_ride_through_densification_and_checkpoints(tiny_scene, tmp_path):
 def test_a_restart_forgets_the_ages_and_the_option_is_part_of_the_resume_signature(tiny_scene, tmp_path):
     trainer = trainer_for(tiny_scene, tmp_path, by_age=True)
     model = trainer.pipeline.model
-    train(trainer, range(3))
+    train_steps(trainer, range(3))
     assert model.seen_at().any()
     model.reset_to_initial(3, trainer.optimizers.optimizers)
     assert not model.seen_at().any() and model.seen_at().shape == (model.num_points,)  # all unseen again
