@@ -12,6 +12,8 @@ views, with the correlation of that share and the cost within each (scene, selec
     python benchmarks/schedule_cost_views.py [--root benchmarks/results/tune-boost] [--arm off] [--other b3] \
         [--data-root ../shared/data] [--out ROOT/cost_by_view.json] [--plot docs/lab/schedule-cost-by-round.png]
 
+`--arm off r8-16`: several arms, each reported (JSON `{arm: {start: ...}}`) and drawn as lines of their own.
+
 `--plot`: the mean cost per round of the nearest view (standard errors), one line per start, with the step each
 round arrived at and where splatfacto's SH degree 1 opens (`--sh-degree-interval`, splatfacto's 1000).
 """
@@ -33,32 +35,40 @@ from hpgs_ns.scenes.colmap_model import read_images, read_points3D
 GROUPS = (("initial", 0, 0), ("rounds 1-8", 1, 8), ("rounds 9-12", 9, 12), ("rounds 13-16", 13, 16))
 
 
-def centres(data_root: Path, scene: str, cache: Dict[str, Dict[str, np.ndarray]]) -> Dict[str, np.ndarray]:
-    """{'images/<name>': camera centre} from the scene's COLMAP model (the names the runs record)."""
+def images(data_root: Path, scene: str, cache: Dict[str, dict]) -> dict:
+    """The scene's COLMAP images (read once per scene)."""
     if scene not in cache:
-        images = read_images(data_root / scene / "sparse" / "0") or {}
-        cache[scene] = {f"images/{im.name}": -im.qvec2rotmat().T @ im.tvec for im in images.values()}
+        cache[scene] = read_images(data_root / scene / "sparse" / "0") or {}
     return cache[scene]
 
 
-def observed(data_root: Path, scene: str, cache: Dict[str, Dict[str, set]]) -> Dict[str, set]:
+def centres(data_root: Path, scene: str, cache: Dict[str, dict]) -> Dict[str, np.ndarray]:
+    """{'images/<name>': camera centre} from the scene's COLMAP model (the names the runs record)."""
+    key = ("centres", scene)
+    if key not in cache:
+        cache[key] = {f"images/{im.name}": -im.qvec2rotmat().T @ im.tvec
+                      for im in images(data_root, scene, cache).values()}
+    return cache[key]
+
+
+def observed(data_root: Path, scene: str, cache: Dict[str, dict]) -> Dict[str, set]:
     """{'images/<name>': ids of the COLMAP points that image observes} from the scene's model's tracks."""
-    if scene not in cache:
-        model = data_root / scene / "sparse" / "0"
-        names = {i: f"images/{im.name}" for i, im in (read_images(model) or {}).items()}
+    key = ("tracks", scene)
+    if key not in cache:
+        names = {i: f"images/{im.name}" for i, im in images(data_root, scene, cache).items()}
         seen: Dict[str, set] = defaultdict(set)
-        for pid, point in (read_points3D(model) or {}).items():
+        for pid, point in (read_points3D(data_root / scene / "sparse" / "0") or {}).items():
             for iid in set(point.image_ids.tolist()):
                 seen[names[iid]].add(pid)
-        cache[scene] = seen
-    return cache[scene]
+        cache[key] = seen
+    return cache[key]
 
 
 def group_of(round_added: int) -> str:
     return next(name for name, lo, hi in GROUPS if lo <= round_added <= hi)
 
 
-def view_rows(root: Path, start: str, arm: str, data_root: Path, cache, tracks=None) -> List[dict]:
+def view_rows(root: Path, start: str, arm: str, data_root: Path, cache: Dict[str, dict]) -> List[dict]:
     """One row per (run, test view): its run PSNR, its final-set PSNR, its nearest training view's round and the
     share of its COLMAP points an initial view observes (None without points)."""
     rows = []
@@ -69,7 +79,7 @@ def view_rows(root: Path, start: str, arm: str, data_root: Path, cache, tracks=N
         order = list(run.initial_views) + list(run.chosen_views)
         added = {name: max(i - len(run.initial_views) + 1, 0) for i, name in enumerate(order)}
         final_psnr = {v.name: v.psnr for v in pair.final.test_views}
-        seen = observed(data_root, run.scene, tracks if tracks is not None else {})
+        seen = observed(data_root, run.scene, cache)
         at_start = set().union(*(seen[name] for name in run.initial_views))
         for view in run.test_views:
             points = seen[view.name]
@@ -106,61 +116,68 @@ def means(values: Dict[str, List[float]]) -> Dict[str, dict]:
     return {g: {"mean": round(float(np.mean(v)), 3), "views": len(v)} for g, v in values.items() if v}
 
 
+def arm_report(root: Path, start: str, arm: str, other: str, data_root: Path, cache: Dict[str, dict]) -> dict:
+    """One start's and arm's cost per group, per round and by geometry (and `other`'s run PSNR minus this arm's)."""
+    rows = view_rows(root, start, arm, data_root, cache)
+    cost: Dict[str, List[float]] = defaultdict(list)
+    for r in rows:
+        cost[r["group"]].append(r["final_set"] - r["run"])
+    entry = {"cost_by_group": means({g: cost[g] for g, _, _ in GROUPS})}
+    if other and (root / start / other).is_dir():
+        twins = {(r["scene"], r["selector"], r["seed"], r["view"]): r
+                 for r in view_rows(root, start, other, data_root, cache)}
+        diff: Dict[str, List[float]] = defaultdict(list)
+        for r in rows:
+            twin = twins.get((r["scene"], r["selector"], r["seed"], r["view"]))
+            if r["selector"] == "random" and twin is not None:
+                diff[r["group"]].append(twin["run"] - r["run"])
+        entry[f"random_run_{other}_minus_{arm}_by_group"] = means({g: diff[g] for g, _, _ in GROUPS})
+    entry["by_initial_share"] = geometry(rows)
+    by_round: Dict[int, List[float]] = defaultdict(list)
+    for r in rows:
+        by_round[r["round"]].append(r["final_set"] - r["run"])
+    entry["cost_by_round"] = {str(k): {"mean": round(float(np.mean(v)), 3), "views": len(v),
+                                       "se": round(float(np.std(v, ddof=1) / np.sqrt(len(v))), 3) if len(v) > 1 else None}
+                              for k, v in sorted(by_round.items())}
+    entry["round_steps"] = next((r["round_steps"] for r in rows if r["round_steps"]), [])
+    print(f"== {start}, {arm} ({len(rows)} test views)")
+    for g, _, _ in GROUPS:
+        c = entry["cost_by_group"].get(g)
+        d = entry.get(f"random_run_{other}_minus_{arm}_by_group", {}).get(g)
+        print(f"  nearest view {g:>13}: cost {c['mean']:+.2f} dB ({c['views']} views)" if c else f"  {g}: none",
+              f"| random run {other} - {arm} {d['mean']:+.2f} ({d['views']})" if d else "")
+    geo = entry["by_initial_share"]
+    for third in geo["thirds"]:
+        print(f"  share seen from step 0 {third['share'][0]:.2f}-{third['share'][1]:.2f}: cost {third['mean']:+.2f} dB "
+              f"({third['views']} views)")
+    print(f"  within (scene, selector): corr(share, cost) {geo['within_corr']:+.3f}")
+    return entry
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--root", type=Path, default=Path("benchmarks/results/tune-boost"))
-    ap.add_argument("--arm", default="off")
+    ap.add_argument("--arm", nargs="+", default=["off"], help="one or more arms (a line each in --plot)")
     ap.add_argument("--other", default="b3", help="an arm to compare run PSNR per group with ('' for none)")
     ap.add_argument("--data-root", type=Path, default=Path("../shared/data"))
     ap.add_argument("--out", type=Path)
     ap.add_argument("--plot", type=Path)
     ap.add_argument("--sh-degree-interval", type=int, default=1000)
+    ap.add_argument("--restart-rounds", type=int, nargs="*", default=[],
+                    help="rounds to mark in --plot as restarts (restart-at-views 8 16 with 4 initial views: 4 12)")
     args = ap.parse_args()
-    cache: Dict[str, Dict[str, np.ndarray]] = {}
-    tracks: Dict[str, Dict[str, set]] = {}
-    report = {}
-    for start in sorted(p.name for p in args.root.iterdir() if (p / args.arm).is_dir()):
-        rows = view_rows(args.root, start, args.arm, args.data_root, cache, tracks)
-        cost: Dict[str, List[float]] = defaultdict(list)
-        for r in rows:
-            cost[r["group"]].append(r["final_set"] - r["run"])
-        entry = {"cost_by_group": means({g: cost[g] for g, _, _ in GROUPS})}
-        if args.other and (args.root / start / args.other).is_dir():
-            other = {(r["scene"], r["selector"], r["seed"], r["view"]): r
-                     for r in view_rows(args.root, start, args.other, args.data_root, cache, tracks)}
-            diff: Dict[str, List[float]] = defaultdict(list)
-            for r in rows:
-                twin = other.get((r["scene"], r["selector"], r["seed"], r["view"]))
-                if r["selector"] == "random" and twin is not None:
-                    diff[r["group"]].append(twin["run"] - r["run"])
-            entry[f"random_run_{args.other}_minus_{args.arm}_by_group"] = means({g: diff[g] for g, _, _ in GROUPS})
-        entry["by_initial_share"] = geometry(rows)
-        by_round: Dict[int, List[float]] = defaultdict(list)
-        for r in rows:
-            by_round[r["round"]].append(r["final_set"] - r["run"])
-        entry["cost_by_round"] = {str(k): {"mean": round(float(np.mean(v)), 3), "views": len(v),
-                                           "se": round(float(np.std(v, ddof=1) / np.sqrt(len(v))), 3) if len(v) > 1 else None}
-                                  for k, v in sorted(by_round.items())}
-        entry["round_steps"] = next((r["round_steps"] for r in rows if r["round_steps"]), [])
-        report[start] = entry
-        print(f"== {start} ({len(rows)} test views of {args.arm} runs)")
-        for g, _, _ in GROUPS:
-            c = entry["cost_by_group"].get(g)
-            d = entry.get(f"random_run_{args.other}_minus_{args.arm}_by_group", {}).get(g)
-            print(f"  nearest view {g:>13}: cost {c['mean']:+.2f} dB ({c['views']} views)" if c else f"  {g}: none",
-                  f"| random run {args.other} - {args.arm} {d['mean']:+.2f} ({d['views']})" if d else "")
-        geo = entry["by_initial_share"]
-        for third in geo["thirds"]:
-            print(f"  share seen from step 0 {third['share'][0]:.2f}-{third['share'][1]:.2f}: cost {third['mean']:+.2f} dB "
-                  f"({third['views']} views)")
-        print(f"  within (scene, selector): corr(share, cost) {geo['within_corr']:+.3f}")
-    write_json_atomic(args.out or args.root / "cost_by_view.json", report)
+    cache: Dict[str, dict] = {}
+    by_arm = {arm: {start: arm_report(args.root, start, arm, args.other, args.data_root, cache)
+                    for start in sorted(p.name for p in args.root.iterdir() if (p / arm).is_dir())}
+              for arm in args.arm}
+    # one arm: {start: entry} (as before); several: {arm: {start: entry}}
+    write_json_atomic(args.out or args.root / "cost_by_view.json", by_arm if len(by_arm) > 1 else by_arm[args.arm[0]])
     if args.plot:
-        plot_rounds(report, args.plot, args.sh_degree_interval)
+        plot_rounds(by_arm, args.plot, args.sh_degree_interval, args.restart_rounds)
 
 
-def plot_rounds(report: dict, path: Path, sh_interval: int) -> None:
-    """Mean cost per round of the nearest training view, one line per start."""
+def plot_rounds(by_arm: Dict[str, dict], path: Path, sh_interval: int, restarts: List[int]) -> None:
+    """Mean cost per round of the nearest training view, one line per (arm, start)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -170,23 +187,26 @@ def plot_rounds(report: dict, path: Path, sh_interval: int) -> None:
 
     fig, ax = plt.subplots(figsize=(8, 4))
     steps: List[int] = []
-    for start, entry in sorted(report.items()):
+    lines = [(arm, start, entry) for arm, report in by_arm.items() for start, entry in sorted(report.items())]
+    for arm, start, entry in lines:
         rounds = sorted(int(k) for k in entry["cost_by_round"])
         cells = [entry["cost_by_round"][str(k)] for k in rounds]
         ax.errorbar(rounds, [c["mean"] for c in cells], yerr=[c["se"] or 0 for c in cells], marker="o", capsize=3,
-                    label=f"{start} start")
+                    label=f"{start} start" if len(by_arm) == 1 else f"{arm}, {start} start")
         steps = steps or entry.get("round_steps", [])
     opens = next((k + 1 for k, step in enumerate(steps) if step >= sh_interval), None)  # round k+1 arrives at steps[k]
     if opens is not None:
         ax.axvline(opens - 0.5, color="gray", linestyle="--")
         ax.text(opens - 0.4, ax.get_ylim()[1] * 0.92, f"SH degree 1 opens (step {sh_interval})", color="gray")
+    for k, r in enumerate(restarts):
+        ax.axvline(r, color="green", linestyle=":", label="restart (restart-at-views)" if k == 0 else None)
     ax.axhline(0, color="black", linewidth=0.5)
     labels = ["initial"] + [f"{k}\n{steps[k - 1]}" if k - 1 < len(steps) else str(k) for k in range(1, 17)]
     ax.set_xticks(range(17), labels, fontsize=7)
     ax.set_xlabel("round that added the test view's nearest training view (and the step it arrived)")
     ax.set_ylabel("final-set − run PSNR (dB)")
     ax.set_title("Where the schedule cost lands (tune6, half scale, random + hpgs orders, seeds 0-2)")
-    ax.legend()
+    ax.legend(loc="lower right", fontsize=8)
     fig.tight_layout()
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=120, format="png")
