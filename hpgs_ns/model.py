@@ -99,8 +99,9 @@ class HpgsSplatfactoModelConfig(SplatfactoModelConfig):
     """Open each Gaussian's spherical-harmonic degrees with its own age, one degree per sh-degree-interval steps
     since a training view first saw it, instead of with the run's step: content first seen after step 0 then gets
     its base colour before its view-dependent terms, as the first views' content did (a late view's content is
-    otherwise fitted with every coefficient at once from a few views). Off: splatfacto's one degree for all. An
-    option to pilot (issue #46); with no view added it still acts, on Gaussians first seen after step 0."""
+    otherwise fitted with every coefficient at once from a few views). Off: splatfacto's one degree for all; off
+    by default because on the tuning scenes it did not lower the schedule cost (docs/lab/restart-colmap.md). With
+    no view added it still acts, on Gaussians first seen after step 0."""
 
 
 class HpgsSplatfactoModel(SplatfactoModel):
