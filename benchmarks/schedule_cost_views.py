@@ -165,6 +165,7 @@ def main() -> None:
     ap.add_argument("--sh-degree-interval", type=int, default=1000)
     ap.add_argument("--restart-rounds", type=int, nargs="*", default=[],
                     help="rounds to mark in --plot as restarts (restart-at-views 8 16 with 4 initial views: 4 12)")
+    ap.add_argument("--title", default="Where the schedule cost lands (tune6, half scale, random + hpgs orders, seeds 0-2)")
     args = ap.parse_args()
     cache: Dict[str, dict] = {}
     by_arm = {arm: {start: arm_report(args.root, start, arm, args.other, args.data_root, cache)
@@ -173,10 +174,10 @@ def main() -> None:
     # one arm: {start: entry} (as before); several: {arm: {start: entry}}
     write_json_atomic(args.out or args.root / "cost_by_view.json", by_arm if len(by_arm) > 1 else by_arm[args.arm[0]])
     if args.plot:
-        plot_rounds(by_arm, args.plot, args.sh_degree_interval, args.restart_rounds)
+        plot_rounds(by_arm, args.plot, args.sh_degree_interval, args.restart_rounds, args.title)
 
 
-def plot_rounds(by_arm: Dict[str, dict], path: Path, sh_interval: int, restarts: List[int]) -> None:
+def plot_rounds(by_arm: Dict[str, dict], path: Path, sh_interval: int, restarts: List[int], title: str) -> None:
     """Mean cost per round of the nearest training view, one line per (arm, start)."""
     import matplotlib
 
@@ -205,7 +206,7 @@ def plot_rounds(by_arm: Dict[str, dict], path: Path, sh_interval: int, restarts:
     ax.set_xticks(range(17), labels, fontsize=7)
     ax.set_xlabel("round that added the test view's nearest training view (and the step it arrived)")
     ax.set_ylabel("final-set − run PSNR (dB)")
-    ax.set_title("Where the schedule cost lands (tune6, half scale, random + hpgs orders, seeds 0-2)")
+    ax.set_title(title)
     ax.legend(loc="lower right", fontsize=8)
     fig.tight_layout()
     with atomic_path(path) as tmp:
