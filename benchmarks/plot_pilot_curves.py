@@ -16,10 +16,14 @@ from collections import defaultdict
 from pathlib import Path
 from typing import Dict, List
 
+import matplotlib
 import numpy as np
 
-from hpgs_lab.results import RunResult, load_final_sets, load_results
-from hpgs_ns.atomic_write import atomic_path, write_json_atomic
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+from hpgs_lab.results import RunResult, load_final_sets, load_results  # noqa: E402
+from hpgs_ns.atomic_write import atomic_path, write_json_atomic  # noqa: E402
 
 
 def mean_curve(results: List[RunResult]) -> Dict[int, float]:
@@ -49,7 +53,7 @@ def main() -> None:
         if arm == args.arm[0]:
             lines[f"{arm}: final-sets (the runs' views from step 0)"] = mean_curve(load_final_sets(folder))
         print(f"{arm}: {len(runs)} runs; end {list(lines[f'{arm}: runs'].values())[-1]:.2f} dB")
-    fig, ax = plt_axes()
+    fig, ax = plt.subplots(figsize=(8, 4))
     last = max(max(c) for c in lines.values())
     for k, step in enumerate(range(args.reset_every, last, args.reset_every)):
         ax.axvline(step, color="gray", linestyle="--", linewidth=0.8, label="opacity reset" if k == 0 else None)
@@ -67,15 +71,6 @@ def main() -> None:
     write_json_atomic(args.out.with_suffix(".json"), {name: {str(s): round(v, 3) for s, v in c.items()}
                                                       for name, c in lines.items()})
     print(f"wrote {args.out}")
-
-
-def plt_axes():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt.subplots(figsize=(8, 4))
 
 
 if __name__ == "__main__":

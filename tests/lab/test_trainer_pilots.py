@@ -1,9 +1,11 @@
-"""benchmarks/late_view_boost.py: a trainer pilot's arm against `off`, paired by (scene, selector, seed)."""
+"""benchmarks/late_view_boost.py: a trainer pilot's arm against `off`, paired by (scene, selector, seed); and
+benchmarks/plot_pilot_curves.py's mean curve over a pilot's runs."""
 
 from __future__ import annotations
 
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 from helpers import make_result
@@ -16,7 +18,8 @@ def pilots():
     sys.path.insert(0, str(REPO / "benchmarks"))
     try:
         import late_view_boost
-        yield late_view_boost
+        import plot_pilot_curves
+        yield SimpleNamespace(compare=late_view_boost.compare, mean_curve=plot_pilot_curves.mean_curve)
     finally:
         sys.path.remove(str(REPO / "benchmarks"))
 
@@ -49,3 +52,9 @@ def test_an_arm_is_paired_with_off_and_judged_by_the_plans_rule(tmp_path, pilots
     assert out["per_scene_gain"] == {"a": 0.5, "b": 0.3}
     # two scenes both up: the exact sign-flip p over 2 scene means is 2/4 = 0.5, so the rule (p < 0.1) is not met
     assert out["gain"]["p"] == pytest.approx(0.5) and out["decision"] == "rule not met"
+
+
+def test_the_mean_curve_averages_each_step_and_ends_with_the_runs_final_psnr(pilots):
+    runs = [make_result("a", "fisherrf", "random", 0, 18.0, steps=1000, psnr_at_round_steps={200: 15.0, 600: 16.0}),
+            make_result("b", "fisherrf", "random", 0, 20.0, steps=1000, psnr_at_round_steps={200: 17.0, 600: 15.0})]
+    assert pilots.mean_curve(runs) == {200: 16.0, 600: 15.5, 1000: 19.0}
