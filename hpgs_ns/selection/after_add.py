@@ -62,6 +62,13 @@ class AfterAddConfig:
     from it is locked in as a random start's is (docs/active-training.md). False: an active start that found enough
     points never restarts."""
 
+    restart_seeded_starts: bool = False
+    """When restart-at-views is empty, a splat seeded by the capture's points (seed-points colmap or colmap-initial,
+    or auto where the capture has a point cloud) restarts too, at twice and four times the initial view count, from
+    those points: the views present then train together as from step 0. Off: such a splat never restarts unless
+    restart-at-views says so; on the tuning scenes restarts at 8 and 16 views moved its schedule cost off every view
+    present at a restart, but the run's gain was not significant (docs/lab/restart-colmap.md)."""
+
     restart_at_last_add: bool = False
     """Also start the splat over at the round that brings the training views to the run's final count (initial
     views + max-rounds x views-per-round, or every view if fewer remain): the final views then train together, as
@@ -103,12 +110,14 @@ class AfterAddConfig:
     def restart_counts(self, initial_views: int, random_start: bool, active_start: bool = False,
                        final_views: Optional[int] = None) -> Tuple[int, ...]:
         """The view counts at which the splat restarts, for a run of `initial_views` initial views that started from
-        random points (`random_start`) or from the initial views' triangulation (`active_start`) and that ends with
-        `final_views` (restart-at-last-add; counts beyond it never come)."""
+        random points (`random_start`), from the initial views' triangulation (`active_start`) or, neither, from the
+        capture's points, and that ends with `final_views` (restart-at-last-add; counts beyond it never come)."""
         counts: Tuple[int, ...] = ()
+        seeded_start = not random_start and not active_start
         if self.restart_at_views:
             counts = self.restart_at_views
-        elif (self.restart_random_starts and random_start) or (self.restart_active_starts and active_start):
+        elif ((self.restart_random_starts and random_start) or (self.restart_active_starts and active_start)
+              or (self.restart_seeded_starts and seeded_start)):
             counts = (2 * initial_views, 4 * initial_views)
         if self.restart_at_last_add and final_views is not None:
             counts = (*counts, int(final_views))

@@ -183,6 +183,10 @@ class SelectionRounds:
                 if random_start:
                     CONSOLE.print(f"random start: the splat restarts at {at} views "
                                   "(--pipeline.selection.after-add.restart-random-starts False: never)", soft_wrap=True)
+                elif not active_mode:
+                    what = "its own opaque Gaussians" if from_splat else "the capture's points"
+                    CONSOLE.print(f"seed points: the splat restarts at {at} views from {what} "
+                                  "(--pipeline.selection.after-add.restart-seeded-starts False: never)", soft_wrap=True)
                 else:
                     what = ("its own opaque Gaussians" if from_splat else "what the active views triangulate then")
                     CONSOLE.print(f"active seed points: the splat restarts at {at} views from {what} "

@@ -125,6 +125,13 @@ def test_restart_counts_must_be_positive():
     assert AfterAddConfig(restart_active_starts=False).restart_counts(4, False, active_start=True) == ()
     assert AfterAddConfig(restart_active_starts=False).restart_counts(4, True, active_start=False) == (8, 16)
     assert auto.restart_counts(20, False, active_start=True) == (40, 80)
+    # a start from the capture's points restarts only when asked (restart-seeded-starts), and only as such
+    seeded = AfterAddConfig(restart_seeded_starts=True)
+    assert seeded.describe() == "restart-seeded-starts True" and not seeded.enabled
+    assert seeded.restart_counts(4, random_start=False) == (8, 16)
+    assert AfterAddConfig(restart_seeded_starts=True, restart_active_starts=False).restart_counts(4, False, True) == ()
+    assert AfterAddConfig(restart_seeded_starts=True, restart_random_starts=False).restart_counts(4, True) == ()
+    assert seeded.restart_counts(20, random_start=False, final_views=27) == ()  # HP-GS's 20 + 7: never
 
 
 def test_restart_at_last_add_counts_the_runs_final_views():
@@ -152,3 +159,20 @@ def test_a_seeded_run_restarts_only_at_its_last_add(tiny_scene, tmp_path, capsys
     assert seen[29]["model_step"] == 29 and seen[30]["model_step"] == 0 and seen[39]["model_step"] == 9
     assert seen[30]["num_points"] == model.initial_gaussians["means"].shape[0] == 1500  # back to the seed points
     assert model.clock_scale == pytest.approx(10 / 40)  # every schedule squeezed into the 10 steps left
+
+
+def test_a_seeded_run_restarts_at_twice_its_initial_views_when_asked(tiny_scene, tmp_path, capsys):
+    cfg = short_config(tiny_scene, tmp_path / "seeded", steps=40, select_at=(20, 30), rounds=2, initial=3,
+                       views_per_round=3, selector="random")
+    cfg.pipeline.selection.after_add = AfterAddConfig(restart_seeded_starts=True)
+    torch.manual_seed(0)
+    trainer, seen = run_training_seeing(cfg, see)
+    model = trainer.pipeline.model
+    assert not model.random_start  # the synthetic scene's points
+    out = " ".join(capsys.readouterr().out.split())
+    assert "seed points: the splat restarts at 6 views from the capture's points" in out
+    log = json.loads((Path(trainer.base_dir) / "selected_views.json").read_text())
+    assert [bool(r.get("reset")) for r in log["rounds"]] == [True, False]  # 3 -> 6: twice the initial views; 6 -> 9: no
+    assert seen[19]["model_step"] == 19 and seen[20]["model_step"] == 0 and seen[39]["model_step"] == 19
+    assert seen[20]["num_points"] == model.initial_gaussians["means"].shape[0]  # back to the seed points
+    assert model.clock_scale == pytest.approx(20 / 40)  # every schedule squeezed into the 20 steps left
