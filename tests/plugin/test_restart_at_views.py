@@ -145,34 +145,34 @@ def test_restart_at_last_add_counts_the_runs_final_views():
     assert AfterAddConfig().restart_counts(4, random_start=True, final_views=12) == (8,)
 
 
-def test_a_seeded_run_restarts_only_at_its_last_add(tiny_scene, tmp_path, capsys):
-    cfg = short_config(tiny_scene, tmp_path / "last", steps=40, select_at=(20, 30), rounds=2, initial=3,
-                       views_per_round=3, selector="random")
-    cfg.pipeline.selection.after_add = AfterAddConfig(restart_at_last_add=True)
+def seeded_run(tiny_scene, folder: Path, after_add: AfterAddConfig, capsys):
+    """A run from the synthetic scene's points (3 initial views, 3 more at steps 20 and 30 of 40) with `after_add`:
+    (trainer, what `see` saw each step, the rounds' log, the console's start-up text on one line)."""
+    cfg = short_config(tiny_scene, folder, steps=40, select_at=(20, 30), rounds=2, initial=3, views_per_round=3,
+                       selector="random")
+    cfg.pipeline.selection.after_add = after_add
     torch.manual_seed(0)
     trainer, seen = run_training_seeing(cfg, see)
-    model = trainer.pipeline.model
-    assert not model.random_start  # the synthetic scene's points: no automatic restarts
-    assert "restart-at-last-add: the splat restarts at 9 views, the run's last add" in " ".join(capsys.readouterr().out.split())
+    assert not trainer.pipeline.model.random_start  # the synthetic scene's points: no automatic restarts
     log = json.loads((Path(trainer.base_dir) / "selected_views.json").read_text())
-    assert [bool(r.get("reset")) for r in log["rounds"]] == [False, True]  # 3 -> 6: no; 6 -> 9, the last add: yes
+    return trainer, seen, [bool(r.get("reset")) for r in log["rounds"]], " ".join(capsys.readouterr().out.split())
+
+
+def test_a_seeded_run_restarts_only_at_its_last_add(tiny_scene, tmp_path, capsys):
+    trainer, seen, resets, out = seeded_run(tiny_scene, tmp_path / "last", AfterAddConfig(restart_at_last_add=True), capsys)
+    model = trainer.pipeline.model
+    assert "restart-at-last-add: the splat restarts at 9 views, the run's last add" in out
+    assert resets == [False, True]  # 3 -> 6: no; 6 -> 9, the last add: yes
     assert seen[29]["model_step"] == 29 and seen[30]["model_step"] == 0 and seen[39]["model_step"] == 9
     assert seen[30]["num_points"] == model.initial_gaussians["means"].shape[0] == 1500  # back to the seed points
     assert model.clock_scale == pytest.approx(10 / 40)  # every schedule squeezed into the 10 steps left
 
 
 def test_a_seeded_run_restarts_at_twice_its_initial_views_when_asked(tiny_scene, tmp_path, capsys):
-    cfg = short_config(tiny_scene, tmp_path / "seeded", steps=40, select_at=(20, 30), rounds=2, initial=3,
-                       views_per_round=3, selector="random")
-    cfg.pipeline.selection.after_add = AfterAddConfig(restart_seeded_starts=True)
-    torch.manual_seed(0)
-    trainer, seen = run_training_seeing(cfg, see)
+    trainer, seen, resets, out = seeded_run(tiny_scene, tmp_path / "seeded", AfterAddConfig(restart_seeded_starts=True), capsys)
     model = trainer.pipeline.model
-    assert not model.random_start  # the synthetic scene's points
-    out = " ".join(capsys.readouterr().out.split())
     assert "seed points: the splat restarts at 6 views from the capture's points" in out
-    log = json.loads((Path(trainer.base_dir) / "selected_views.json").read_text())
-    assert [bool(r.get("reset")) for r in log["rounds"]] == [True, False]  # 3 -> 6: twice the initial views; 6 -> 9: no
+    assert resets == [True, False]  # 3 -> 6: twice the initial views; 6 -> 9: no (12 never comes)
     assert seen[19]["model_step"] == 19 and seen[20]["model_step"] == 0 and seen[39]["model_step"] == 19
-    assert seen[20]["num_points"] == model.initial_gaussians["means"].shape[0]  # back to the seed points
+    assert seen[20]["num_points"] == model.initial_gaussians["means"].shape[0] == 1500  # back to the seed points
     assert model.clock_scale == pytest.approx(20 / 40)  # every schedule squeezed into the 20 steps left
