@@ -35,14 +35,15 @@ from hpgs_ns.scenes.colmap_model import read_images, read_points3D
 GROUPS = (("initial", 0, 0), ("rounds 1-8", 1, 8), ("rounds 9-12", 9, 12), ("rounds 13-16", 13, 16))
 
 
-def images(data_root: Path, scene: str, cache: Dict[str, dict]) -> dict:
+def images(data_root: Path, scene: str, cache: Dict[tuple, dict]) -> dict:
     """The scene's COLMAP images (read once per scene)."""
-    if scene not in cache:
-        cache[scene] = read_images(data_root / scene / "sparse" / "0") or {}
-    return cache[scene]
+    key = ("images", scene)
+    if key not in cache:
+        cache[key] = read_images(data_root / scene / "sparse" / "0") or {}
+    return cache[key]
 
 
-def centres(data_root: Path, scene: str, cache: Dict[str, dict]) -> Dict[str, np.ndarray]:
+def centres(data_root: Path, scene: str, cache: Dict[tuple, dict]) -> Dict[str, np.ndarray]:
     """{'images/<name>': camera centre} from the scene's COLMAP model (the names the runs record)."""
     key = ("centres", scene)
     if key not in cache:
@@ -51,7 +52,7 @@ def centres(data_root: Path, scene: str, cache: Dict[str, dict]) -> Dict[str, np
     return cache[key]
 
 
-def observed(data_root: Path, scene: str, cache: Dict[str, dict]) -> Dict[str, set]:
+def observed(data_root: Path, scene: str, cache: Dict[tuple, dict]) -> Dict[str, set]:
     """{'images/<name>': ids of the COLMAP points that image observes} from the scene's model's tracks."""
     key = ("tracks", scene)
     if key not in cache:
@@ -68,7 +69,7 @@ def group_of(round_added: int) -> str:
     return next(name for name, lo, hi in GROUPS if lo <= round_added <= hi)
 
 
-def view_rows(root: Path, start: str, arm: str, data_root: Path, cache: Dict[str, dict]) -> List[dict]:
+def view_rows(root: Path, start: str, arm: str, data_root: Path, cache: Dict[tuple, dict]) -> List[dict]:
     """One row per (run, test view): its run PSNR, its final-set PSNR, its nearest training view's round and the
     share of its COLMAP points an initial view observes (None without points)."""
     rows = []
@@ -116,7 +117,7 @@ def means(values: Dict[str, List[float]]) -> Dict[str, dict]:
     return {g: {"mean": round(float(np.mean(v)), 3), "views": len(v)} for g, v in values.items() if v}
 
 
-def arm_report(root: Path, start: str, arm: str, other: str, data_root: Path, cache: Dict[str, dict]) -> dict:
+def arm_report(root: Path, start: str, arm: str, other: str, data_root: Path, cache: Dict[tuple, dict]) -> dict:
     """One start's and arm's cost per group, per round and by geometry (and `other`'s run PSNR minus this arm's)."""
     rows = view_rows(root, start, arm, data_root, cache)
     cost: Dict[str, List[float]] = defaultdict(list)
@@ -167,7 +168,7 @@ def main() -> None:
                     help="rounds to mark in --plot as restarts (restart-at-views 8 16 with 4 initial views: 4 12)")
     ap.add_argument("--title", default="Where the schedule cost lands (tune6, half scale, random + hpgs orders, seeds 0-2)")
     args = ap.parse_args()
-    cache: Dict[str, dict] = {}
+    cache: Dict[tuple, dict] = {}
     by_arm = {arm: {start: arm_report(args.root, start, arm, args.other, args.data_root, cache)
                     for start in sorted(p.name for p in args.root.iterdir() if (p / arm).is_dir())}
               for arm in args.arm}

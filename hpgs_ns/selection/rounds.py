@@ -181,16 +181,15 @@ class SelectionRounds:
             if automatic and not after_add.restart_at_views:  # HP-GS's 20 + 7: none
                 at = " and ".join(map(str, automatic))
                 if random_start:
-                    CONSOLE.print(f"random start: the splat restarts at {at} views "
-                                  "(--pipeline.selection.after-add.restart-random-starts False: never)", soft_wrap=True)
-                elif not active_mode:
-                    what = "its own opaque Gaussians" if from_splat else "the capture's points"
-                    CONSOLE.print(f"seed points: the splat restarts at {at} views from {what} "
-                                  "(--pipeline.selection.after-add.restart-seeded-starts False: never)", soft_wrap=True)
+                    start, source, flag = "random start", "", "restart-random-starts"
+                elif active_mode:
+                    start, source, flag = "active seed points", "what the active views triangulate then", "restart-active-starts"
                 else:
-                    what = ("its own opaque Gaussians" if from_splat else "what the active views triangulate then")
-                    CONSOLE.print(f"active seed points: the splat restarts at {at} views from {what} "
-                                  "(--pipeline.selection.after-add.restart-active-starts False: never)", soft_wrap=True)
+                    start, source, flag = "seed points", "the capture's points", "restart-seeded-starts"
+                if source:
+                    source = " from " + ("its own opaque Gaussians" if from_splat else source)
+                CONSOLE.print(f"{start}: the splat restarts at {at} views{source} "
+                              f"(--pipeline.selection.after-add.{flag} False: never)", soft_wrap=True)
             if from_splat and restart_counts:
                 also = "; the round's triangulated points away from them join, as after any round" if active_mode else ""
                 CONSOLE.print(f"restart-from splat: restarts at {' and '.join(map(str, restart_counts))} views start from "
