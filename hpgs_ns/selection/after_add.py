@@ -67,7 +67,7 @@ class AfterAddConfig:
     or auto where the capture has a point cloud) restarts too, at twice and four times the initial view count, from
     those points: the views present then train together as from step 0. Off: such a splat never restarts unless
     restart-at-views says so; on the tuning scenes restarts at 8 and 16 views moved its schedule cost off every view
-    present at a restart, but the run's gain was not significant (docs/lab/restart-colmap.md)."""
+    present at a restart, but the run's gain was not significant at half or full scale (docs/lab/restart-colmap.md)."""
 
     restart_at_last_add: bool = False
     """Also start the splat over at the round that brings the training views to the run's final count (initial
