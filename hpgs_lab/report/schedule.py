@@ -117,23 +117,42 @@ def cost_by_scene(pairs: Sequence[SchedulePair], protocol: str, selector: str) -
     return out
 
 
+def pooled_cost_by_scene(pairs: Sequence[SchedulePair], protocol: str) -> Dict[str, Dict[int, float]]:
+    """scene -> {k: schedule cost} of every selector's pairs of one protocol (comparable scenes only): a scene's
+    (selector, seed) pairs pooled, so the bootstrap resamples them as it resamples one selector's seeds."""
+    selectors = sorted({p.run.selector for p in pairs if p.run.protocol == protocol})
+    out: Dict[str, Dict[int, float]] = {}
+    for sel in selectors:
+        for scene, by_seed in cost_by_scene(pairs, protocol, sel).items():
+            cell = out.setdefault(scene, {})
+            for cost in by_seed.values():
+                cell[len(cell)] = cost
+    return out
+
+
 def across_scenes_table(pairs: Sequence[SchedulePair], n_boot: int = 10000, seed: int = 0) -> str:
     """Per protocol and selector: the mean over scenes of per-scene mean schedule costs, with its 95% hierarchical
-    bootstrap interval (scenes, then seeds within a scene; "n/a" with fewer than two scenes)."""
+    bootstrap interval (scenes, then seeds within a scene; "n/a" with fewer than two scenes); where a protocol has
+    two or more selectors, a row `all selectors` pools them (per scene, the mean over every selector's pairs): the schedule
+    cost of the trainer rather than of one selector's order."""
     order = bench_order()
     lines = ["Across scenes (no smoke-check scenes or stress copies): mean of per-scene mean schedule costs (dB), "
              "95% hierarchical bootstrap interval.", "",
              "| protocol | selector | scenes | pairs | schedule cost | 95% CI |", "|---|---|---|---|---|---|"]
-    keys = sorted({(p.run.protocol, p.run.selector) for p in pairs}, key=lambda k: (k[0], order.get(k[1], 99), k[1]))
-    header = len(lines)
-    for protocol, sel in keys:
-        costs = cost_by_scene(pairs, protocol, sel)
-        if not costs:
-            continue
+
+    def row(protocol: str, name: str, costs: Dict[str, Dict[int, float]]) -> str:
         estimate, lo, hi = stats.hierarchical_bootstrap(costs, n_boot=n_boot, seed=seed)
         interval = f"[{lo:+.2f}, {hi:+.2f}]" if len(costs) > 1 else "n/a (1 scene)"
         n_pairs = sum(len(c) for c in costs.values())
-        lines.append(f"| {protocol} | {sel} | {len(costs)} | {n_pairs} | {estimate:+.2f} | {interval} |")
+        return f"| {protocol} | {name} | {len(costs)} | {n_pairs} | {estimate:+.2f} | {interval} |"
+
+    header = len(lines)
+    for protocol in sorted({p.run.protocol for p in pairs}):
+        selectors = sorted({p.run.selector for p in pairs if p.run.protocol == protocol}, key=lambda s: (order.get(s, 99), s))
+        shown = [sel for sel in selectors if cost_by_scene(pairs, protocol, sel)]
+        lines += [row(protocol, sel, cost_by_scene(pairs, protocol, sel)) for sel in shown]
+        if len(shown) > 1:
+            lines.append(row(protocol, "all selectors", pooled_cost_by_scene(pairs, protocol)))
     if len(lines) == header:
         return "Across scenes: no final-set pairs outside smoke-check scenes and stress copies."
     return "\n".join(lines)

@@ -406,6 +406,26 @@ def test_the_two_rankings_order_selectors_by_their_runs_and_by_their_final_sets(
     assert rankings_table(pairs[-2:]) == ""
 
 
+def test_the_across_scenes_table_pools_every_selector_into_one_schedule_cost():
+    from hpgs_lab.report.schedule import SchedulePair, across_scenes_table
+
+    def pair(scene, sel, seed, cost, protocol="fisherrf"):
+        views = [f"v{i}" for i in range(4)]
+        r = make_result(scene, protocol, sel, seed, 20.0, initial_views=views, chosen_views=[], num_views_final=4)
+        f = make_result(scene, protocol, FINAL_SET, seed, 20.0 + cost, initial_views=views, num_views_final=4,
+                        final_set_of=SourceRun(sel, seed, 0, views))
+        return SchedulePair(r, f)
+
+    pairs = [pair("a", "farthest", 0, 0.5), pair("a", "farthest", 1, 0.5), pair("a", "hpgs", 0, 3.0),
+             pair("b", "farthest", 0, 0.2), pair("b", "hpgs", 0, 3.0),
+             pair("a", "random", 0, 1.0, protocol="hpgs")]  # one selector: no pooled row for that protocol
+    table = across_scenes_table(pairs, n_boot=200)
+    # per scene, every pair counts once: a (0.5 + 0.5 + 3.0) / 3 = 1.333, b (0.2 + 3.0) / 2 = 1.6 -> 1.47
+    assert "| fisherrf | all selectors | 2 | 5 | +1.47 |" in table
+    assert "| fisherrf | farthest | 2 | 3 | +0.35 |" in table and "| fisherrf | hpgs | 2 | 2 | +3.00 |" in table
+    assert "| hpgs | all selectors |" not in table and "| hpgs | random | 1 | 1 | +1.00 | n/a (1 scene) |" in table
+
+
 def test_extra_args_cannot_turn_the_viewer_on_and_a_list_option_may_end_them(tmp_path):
     import tyro
     from nerfstudio.configs.method_configs import AnnotatedBaseConfigUnion
