@@ -7,6 +7,11 @@ resets and what a restart does to it.
 
 Reads `ROOT/<start>/<arm>/<scene>/fisherrf/<selector>/[final-set/]seed<k>.json` (`psnr_at_round_steps`: the test
 PSNR just before each round's add, the run's end last). Writes the curves as JSON beside the PNG.
+
+    python benchmarks/plot_pilot_curves.py --peaks benchmarks/results/tune-restart/full/off benchmarks/results/judge-full
+
+prints instead, per scene, where the final-sets under those folders (any depth) score best and what they lose by the
+end: a scene whose fit is best early rewards a mechanism for training less.
 """
 
 from __future__ import annotations
@@ -36,6 +41,23 @@ def mean_curve(results: List[RunResult]) -> Dict[int, float]:
     return {step: float(np.mean(v)) for step, v in sorted(at.items())}
 
 
+def peaks(final_sets: List[RunResult]) -> Dict[str, Dict[str, float]]:
+    """scene -> {best_step, best_minus_end, end} of its final-sets' mean curve (`mean_curve`), the end included as
+    a candidate for the best; final-sets without round-step PSNRs are left out."""
+    by_scene: Dict[str, List[RunResult]] = defaultdict(list)
+    for r in final_sets:
+        if r.psnr_at_round_steps:
+            by_scene[r.scene].append(r)
+    out = {}
+    for scene, results in sorted(by_scene.items()):
+        curve = mean_curve(results)
+        best = max(curve, key=lambda step: curve[step])
+        end = curve[max(curve)]
+        out[scene] = {"best_step": best, "best_minus_end": round(curve[best] - end, 3), "end": round(end, 3),
+                      "final_sets": len(results)}
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--root", type=Path, default=Path("benchmarks/results/tune-boost"))
@@ -44,7 +66,16 @@ def main() -> None:
     ap.add_argument("--restart-steps", type=int, nargs="*", default=[], help="steps to mark as the arms' restarts")
     ap.add_argument("--reset-every", type=int, default=3000, help="splatfacto's opacity-reset interval (steps)")
     ap.add_argument("--out", type=Path, default=Path("docs/lab/pilot-curves.png"))
+    ap.add_argument("--peaks", type=Path, nargs="+", metavar="FOLDER",
+                    help="print where the final-sets under these folders score best per scene, and stop")
     args = ap.parse_args()
+    if args.peaks:
+        for folder in args.peaks:
+            found = [RunResult.from_json(p) for p in sorted(folder.glob("**/final-set/seed*.json"))]
+            for scene, row in peaks(found).items():
+                print(f"{folder.as_posix()} {scene}: best at step {row['best_step']}, "
+                      f"{row['best_minus_end']:+.2f} dB over the end ({row['end']:.2f}; {row['final_sets']} final-sets)")
+        return
     lines: Dict[str, Dict[int, float]] = {}
     for arm in args.arm:
         folder = args.root / args.start / arm

@@ -19,7 +19,8 @@ def pilots():
     try:
         import late_view_boost
         import plot_pilot_curves
-        yield SimpleNamespace(compare=late_view_boost.compare, mean_curve=plot_pilot_curves.mean_curve)
+        yield SimpleNamespace(compare=late_view_boost.compare, mean_curve=plot_pilot_curves.mean_curve,
+                              peaks=plot_pilot_curves.peaks)
     finally:
         sys.path.remove(str(REPO / "benchmarks"))
 
@@ -58,3 +59,15 @@ def test_the_mean_curve_averages_each_step_and_ends_with_the_runs_final_psnr(pil
     runs = [make_result("a", "fisherrf", "random", 0, 18.0, steps=1000, psnr_at_round_steps={200: 15.0, 600: 16.0}),
             make_result("b", "fisherrf", "random", 0, 20.0, steps=1000, psnr_at_round_steps={200: 17.0, 600: 15.0})]
     assert pilots.mean_curve(runs) == {200: 16.0, 600: 15.5, 1000: 19.0}
+
+
+def test_peaks_finds_where_a_scenes_final_sets_score_best_and_what_the_end_loses(pilots):
+    early = [make_result("a", "fisherrf", "final-set", seed, end, steps=1000, psnr_at_round_steps={200: 18.0 + seed, 600: 16.0})
+             for seed, end in ((0, 15.0), (1, 15.5))]
+    late = [make_result("b", "fisherrf", "final-set", 0, 22.0, steps=1000, psnr_at_round_steps={200: 19.0, 600: 21.0})]
+    old = [make_result("c", "fisherrf", "final-set", 0, 25.0, steps=1000)]  # no round steps: left out
+    out = pilots.peaks(early + late + old)
+    # a: mean curve 200 -> 18.5, 600 -> 16.0, end 15.25; b keeps improving to its end
+    assert out["a"] == {"best_step": 200, "best_minus_end": 3.25, "end": 15.25, "final_sets": 2}
+    assert out["b"] == {"best_step": 1000, "best_minus_end": 0.0, "end": 22.0, "final_sets": 1}
+    assert "c" not in out
