@@ -117,13 +117,12 @@ def cost_by_scene(pairs: Sequence[SchedulePair], protocol: str, selector: str) -
     return out
 
 
-def pooled_cost_by_scene(pairs: Sequence[SchedulePair], protocol: str) -> Dict[str, Dict[int, float]]:
-    """scene -> {k: schedule cost} of every selector's pairs of one protocol (comparable scenes only): a scene's
-    (selector, seed) pairs pooled, so the bootstrap resamples them as it resamples one selector's seeds."""
-    selectors = sorted({p.run.selector for p in pairs if p.run.protocol == protocol})
-    out: Dict[str, Dict[int, float]] = {}
-    for sel in selectors:
-        for scene, by_seed in cost_by_scene(pairs, protocol, sel).items():
+def pooled_cost_by_scene(by_selector: Sequence[stats.Gains]) -> stats.Gains:
+    """scene -> {k: schedule cost}: several selectors' `cost_by_scene` pooled, a scene's (selector, seed) pairs
+    numbered in turn, so the bootstrap resamples them as it resamples one selector's seeds."""
+    out: stats.Gains = {}
+    for costs in by_selector:
+        for scene, by_seed in costs.items():
             cell = out.setdefault(scene, {})
             for cost in by_seed.values():
                 cell[len(cell)] = cost
@@ -149,10 +148,10 @@ def across_scenes_table(pairs: Sequence[SchedulePair], n_boot: int = 10000, seed
     header = len(lines)
     for protocol in sorted({p.run.protocol for p in pairs}):
         selectors = sorted({p.run.selector for p in pairs if p.run.protocol == protocol}, key=lambda s: (order.get(s, 99), s))
-        shown = [sel for sel in selectors if cost_by_scene(pairs, protocol, sel)]
-        lines += [row(protocol, sel, cost_by_scene(pairs, protocol, sel)) for sel in shown]
-        if len(shown) > 1:
-            lines.append(row(protocol, "all selectors", pooled_cost_by_scene(pairs, protocol)))
+        costs = {sel: c for sel in selectors if (c := cost_by_scene(pairs, protocol, sel))}
+        lines += [row(protocol, sel, c) for sel, c in costs.items()]
+        if len(costs) > 1:
+            lines.append(row(protocol, "all selectors", pooled_cost_by_scene(list(costs.values()))))
     if len(lines) == header:
         return "Across scenes: no final-set pairs outside smoke-check scenes and stress copies."
     return "\n".join(lines)
