@@ -190,6 +190,15 @@ class ActiveDatamanager(FullImageDatamanager):
             CONSOLE.print("seed points: the capture has no point cloud, so the splat starts from random points "
                           "(--pipeline.datamanager.seed-points auto triangulates the active views instead)",
                           soft_wrap=True, highlight=False)
+        if self.seed_points_mode == "active" and test_mode == "val":  # training triangulates: at the start, each round, restarts
+            from hpgs_ns.scenes.triangulate import require_pycolmap
+
+            if self.config.seed_points == "auto":
+                require_pycolmap("--pipeline.datamanager.seed-points auto on a capture without a point cloud (it triangulates "
+                                 "the active views)", "or --pipeline.datamanager.seed-points colmap for splatfacto's random start")
+            else:
+                require_pycolmap("--pipeline.datamanager.seed-points active (it triangulates the active views)",
+                                 "or --pipeline.datamanager.seed-points colmap")
         if self.seed_points_mode == "colmap-initial":
             self._keep_points_seen_by_initial_views()
         elif self.seed_points_mode == "random":

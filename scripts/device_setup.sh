@@ -40,4 +40,9 @@ fi
 { grep -qx '/.dev-tracks/' .git/info/exclude || echo /.dev-tracks/ >> .git/info/exclude; }
 [ -d .dev-tracks/bonsai ] || "${PYTHON:-.venv/bin/python}" scripts/device_scene_with_tracks.py \
   ../shared/data/mipnerf360-bonsai ../shared/data/mipnerf360-bonsai-device/images_2 .dev-tracks/bonsai
-du -sh .dev .dev-vgg/*
+# pycolmap (38 MB; triangulation for seed-points active/auto on captures without points) travels in a call of its
+# own: carry [".dev-pyco"] once per machine; scripts/device_env.sh installs it into /tmp/pyco.
+{ grep -qx '/.dev-pyco/' .git/info/exclude || echo /.dev-pyco/ >> .git/info/exclude; }
+ls .dev-pyco/pycolmap-*.whl > /dev/null 2>&1 || python3 -m pip download -q --no-deps --only-binary=:all: \
+  --python-version 3.12 --platform manylinux_2_28_x86_64 -d .dev-pyco "pycolmap==$(python3 -c 'import pycolmap; print(pycolmap.__version__)' 2>/dev/null || echo 4.2.1)"
+du -sh .dev .dev-vgg/* .dev-pyco

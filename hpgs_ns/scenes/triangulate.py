@@ -90,8 +90,22 @@ DEFAULT_SETTINGS = KNOWN_POSES
 
 
 class TriangulationError(UserError):
-    """Triangulation could not run (pycolmap missing or failing, an unreadable image, a camera type COLMAP lacks).
+    """Triangulation could not run (pycolmap failing, an unreadable image, a camera type COLMAP lacks).
     `triangulate_views` returns it as `info.message` instead of raising; `TriangulationInfo.raise_if_failed` raises."""
+
+
+class PycolmapMissingError(UserError):
+    """pycolmap cannot be imported. Raised, never returned as a message: falling back to random points for an
+    install problem would give a random start's numbers under the active start's name."""
+
+
+def require_pycolmap(what: str, other_fix: str = "") -> None:
+    """Raise `PycolmapMissingError` (one line: `what` needs it, and the fix) unless pycolmap imports."""
+    try:
+        import pycolmap  # noqa: F401
+    except ImportError:
+        raise PycolmapMissingError(f"{what} needs pycolmap, which is not installed here: pip install pycolmap"
+                                   + (f" ({other_fix})" if other_fix else "")) from None
 
 
 @dataclass
@@ -161,6 +175,8 @@ def triangulate_views(
             cameras, image_paths, views, info, max_image_size=max_image_size, max_exhaustive=max_exhaustive,
             neighbours=neighbours, two_view_tracks=two_view_tracks, num_threads=num_threads, settings=settings,
         )
+    except PycolmapMissingError:
+        raise
     except TriangulationError as err:
         info.failed, info.message = True, f"triangulation of {len(views)} views failed: {err}"
         workspace.reset()  # its database may be half-written
@@ -241,10 +257,8 @@ class TriangulationWorkspace:
         bad = [i for i in views if not 0 <= i < len(cameras)]
         if bad:
             raise TriangulationError(f"view index {bad[0]} is out of range (0..{len(cameras) - 1})")
-        try:
-            import pycolmap
-        except ImportError as err:
-            raise TriangulationError("pycolmap is not installed (pip install pycolmap)") from err
+        require_pycolmap("triangulation")
+        import pycolmap
         models = {i: colmap_camera_model(cameras, i) for i in views}
 
         keys = {i: _file_key(Path(image_paths[i]), max_image_size) for i in views}

@@ -247,19 +247,31 @@ def test_an_active_start_restarts_by_default_at_twice_its_views_from_their_trian
     resume({k: v for k, v in old.items() if k != "seed-points"}, colmap_now)  # a colmap run under auto: unchanged
 
 
-def test_without_pycolmap_each_round_says_so_in_one_line(tiny_scene, tmp_path, capsys, monkeypatch):
+def test_without_pycolmap_a_run_that_triangulates_stops_before_training_in_one_line(tiny_scene, tmp_path, spy, monkeypatch):
     import sys
 
+    from hpgs_ns.errors import UserError
+
+    # An install problem must not turn an active start into a random one under its name (a GPU sweep did so silently).
     monkeypatch.setitem(sys.modules, "pycolmap", None)  # `import pycolmap` fails as if it were not installed
-    cfg = short_config(tiny_scene, tmp_path, steps=3, select_at=(1,), rounds=1, selector="random", seed_points="active")
-    cfg.pipeline.model.num_random = 2000
-    trainer = setup_trainer(cfg)
-    assert trainer.pipeline.model.num_points == 2000  # random start
-    trainer.train()
-    out = capsys.readouterr()
-    lines = [x for x in (out.out + out.err).replace("\n ", " ").splitlines() if "round 1" in x and "seed points" in x]
-    assert len(lines) == 1 and "pycolmap is not installed" in lines[0] and "no Gaussians added" in lines[0], lines
-    assert trainer.pipeline.datamanager.history[0].after_add["seed_points_added"] == 0
+    cfg = short_config(tiny_scene, tmp_path / "active", steps=3, select_at=(1,), rounds=1, selector="random", seed_points="active")
+    with pytest.raises(UserError) as err:
+        setup_trainer(cfg)
+    message = str(err.value)
+    assert "\n" not in message and "seed-points active" in message and "pip install pycolmap" in message, message
+    assert "seed-points colmap" in message  # the other way out
+    # auto on a capture without a point cloud triangulates too; with the capture's points it needs no pycolmap
+    cfg = short_config(tiny_scene, tmp_path / "auto", steps=1, rounds=0)
+    cfg.pipeline.datamanager.dataparser.load_3D_points = False
+    with pytest.raises(UserError, match=r"seed-points auto on a capture without a point cloud .*pip install pycolmap"):
+        setup_trainer(cfg)
+    assert spy == []  # nothing was triangulated, nothing trained
+    trainer = setup_trainer(short_config(tiny_scene, tmp_path / "colmap", steps=1, rounds=0))
+    assert trainer.pipeline.datamanager.seed_points_mode == "colmap"
+    # the triangulation itself raises rather than returning a message a caller could fall back on
+    with pytest.raises(triangulate.PycolmapMissingError, match="triangulation needs pycolmap"):
+        triangulate.triangulate_views(trainer.pipeline.datamanager.photo_cameras,
+                                      trainer.pipeline.datamanager.train_dataset.image_filenames, [0, 1])
 
 
 def test_an_active_restart_from_the_splat_keeps_its_gaussians_and_adds_the_rounds_triangulation(juicebox, tmp_path, spy):
