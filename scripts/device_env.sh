@@ -30,10 +30,10 @@ fi
 export PYTHONPATH=$PYTHONPATH:/tmp/lpips-weights
 # pycolmap: without it a run that triangulates (seed-points active, or auto on a capture without points) stops at start
 if [ ! -d /tmp/pyco/pycolmap ] && ls .dev-pyco/pycolmap-*.whl > /dev/null 2>&1; then
-  python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target /tmp/pyco.tmp .dev-pyco/pycolmap-*.whl \
+  rm -rf /tmp/pyco.tmp && python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target /tmp/pyco.tmp .dev-pyco/pycolmap-*.whl \
     && mv /tmp/pyco.tmp /tmp/pyco
 fi
-[ -d /tmp/pyco ] && export PYTHONPATH=$PYTHONPATH:/tmp/pyco
+if [ -d /tmp/pyco ]; then export PYTHONPATH=$PYTHONPATH:/tmp/pyco; fi
 _pyco=$(python3 -c 'import pycolmap; print(pycolmap.__version__)' 2>/dev/null || echo "missing: carry .dev-pyco in a call of its own (scripts/device_setup.sh)")
 echo "device_env: pycolmap $_pyco"
 echo "device_env: LPIPS weights here: $(ls "$_lpips" | grep -v tmp | tr '\n' ' ')($(ls /tmp/lpips-parts | grep -c part-) VGG16 halves carried so far)"
