@@ -16,10 +16,10 @@
 #                                                    # results under /tmp/extra, collected into $OUT/extra.tgz
 #   bash scripts/device_sweep.sh collect SECONDS     # wait until every group ends or SECONDS pass; results -> $OUT
 #   bash scripts/device_sweep.sh env                 # keep what this call carried (kernels, weights, scenes) in /tmp
-#   bash scripts/device_sweep.sh watch SECONDS N DIR...  # `commands` results: every minute, count each /tmp/extra/DIR's
+#   bash scripts/device_sweep.sh watch SECONDS DIR=N...  # `commands` results: every minute, count each /tmp/extra/DIR's
 #                                                    # seed*.json and pack them all into $OUT/extra.tgz (temp, then
 #                                                    # renamed: a call cut off still hands back the last pack); stop
-#                                                    # once each DIR has N or SECONDS pass
+#                                                    # once each DIR has its N or SECONDS pass
 # Each start/parallel/then call adds a group (its own log, /tmp/sweep-N.log; its own copy of the code, /tmp/src-N,
 # as the device tool rewrites the working tree on every call); groups started by `start` or
 # `parallel` begin at once beside running ones. Every sweep writes to /tmp/suite (seeded with
@@ -117,15 +117,18 @@ collect)
   tail -n 4 /tmp/sweep-*.log
   ;;
 watch)
-  end=$(($(date +%s) + $2)); want=$3; shift 3
+  end=$(($(date +%s) + $2)); shift 2
+  dirs=()
+  for pair in "$@"; do dirs+=("${pair%%=*}"); done
   while :; do
     done_all=1; line="$(date +%T)"
-    for dir in "$@"; do
+    for pair in "$@"; do
+      dir=${pair%%=*}; want=${pair#*=}
       n=$(find "/tmp/extra/$dir" -name 'seed*.json' -not -path '*/_*' 2>/dev/null | wc -l)
       line="$line $dir $n/$want"; [ "$n" -ge "$want" ] || done_all=0
     done
     echo "$line"
-    (cd /tmp/extra && find "$@" -name '*.json' -not -path '*/_*' 2>/dev/null | tar czf "$OUT/extra.tmp.tgz" -T - \
+    (cd /tmp/extra && find "${dirs[@]}" -name '*.json' -not -path '*/_*' 2>/dev/null | tar czf "$OUT/extra.tmp.tgz" -T - \
       && mv "$OUT/extra.tmp.tgz" "$OUT/extra.tgz")
     [ "$done_all" = 1 ] && break
     [ $(($(date +%s) + 60)) -gt "$end" ] && break
@@ -133,7 +136,7 @@ watch)
   done
   ;;
 *)
-  echo "usage: device_sweep.sh start|parallel|then ARGS... | commands CMD... | env | collect SECONDS | watch SECONDS N DIR..." >&2
+  echo "usage: device_sweep.sh start|parallel|then ARGS... | commands CMD... | env | collect SECONDS | watch SECONDS DIR=N..." >&2
   exit 2
   ;;
 esac
