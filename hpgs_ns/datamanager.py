@@ -193,12 +193,10 @@ class ActiveDatamanager(FullImageDatamanager):
         if self.seed_points_mode == "active" and test_mode == "val":  # training triangulates: at the start, each round, restarts
             from hpgs_ns.scenes.triangulate import require_pycolmap
 
-            if self.config.seed_points == "auto":
-                require_pycolmap("--pipeline.datamanager.seed-points auto on a capture without a point cloud (it triangulates "
-                                 "the active views)", "or --pipeline.datamanager.seed-points colmap for splatfacto's random start")
-            else:
-                require_pycolmap("--pipeline.datamanager.seed-points active (it triangulates the active views)",
-                                 "or --pipeline.datamanager.seed-points colmap")
+            auto = self.config.seed_points == "auto"
+            require_pycolmap(f"--pipeline.datamanager.seed-points {'auto on a capture without a point cloud' if auto else 'active'}"
+                             " (it triangulates the active views)",
+                             "or --pipeline.datamanager.seed-points colmap" + (" for splatfacto's random start" if auto else ""))
         if self.seed_points_mode == "colmap-initial":
             self._keep_points_seen_by_initial_views()
         elif self.seed_points_mode == "random":

@@ -164,6 +164,7 @@ def triangulate_views(
     """
     if len(image_paths) != len(cameras):
         raise ValueError(f"{len(image_paths)} image paths for {len(cameras)} cameras")
+    require_pycolmap("triangulation")  # raised, not a message: a caller must not fall back on random points for it
     views = sorted({int(i) for i in indices})
     start = time.perf_counter()
     cameras = cameras.to("cpu")  # the datamanager may hold them on the GPU
@@ -175,8 +176,6 @@ def triangulate_views(
             cameras, image_paths, views, info, max_image_size=max_image_size, max_exhaustive=max_exhaustive,
             neighbours=neighbours, two_view_tracks=two_view_tracks, num_threads=num_threads, settings=settings,
         )
-    except PycolmapMissingError:
-        raise
     except TriangulationError as err:
         info.failed, info.message = True, f"triangulation of {len(views)} views failed: {err}"
         workspace.reset()  # its database may be half-written
@@ -257,8 +256,7 @@ class TriangulationWorkspace:
         bad = [i for i in views if not 0 <= i < len(cameras)]
         if bad:
             raise TriangulationError(f"view index {bad[0]} is out of range (0..{len(cameras) - 1})")
-        require_pycolmap("triangulation")
-        import pycolmap
+        import pycolmap  # triangulate_views checked it is there
         models = {i: colmap_camera_model(cameras, i) for i in views}
 
         keys = {i: _file_key(Path(image_paths[i]), max_image_size) for i in views}
