@@ -27,10 +27,12 @@ from hpgs_ns.atomic_write import write_json_atomic
 Key = Tuple[str, str, int]  # scene, selector, seed
 
 
-def read_arm(folder: Path) -> Tuple[Dict[Key, RunResult], Dict[Key, RunResult]]:
-    """{(scene, selector, seed): result} for the runs (first repeats) under one arm's folder, and for the current
-    final-sets of those runs (`schedule_pairs`: one whose run has other views now is left out)."""
-    runs = {(r.scene, r.selector, r.seed): r for r in load_results(folder) if not r.repeat and not r.is_reference}
+def read_arm(folder: Path, protocol: str = "fisherrf") -> Tuple[Dict[Key, RunResult], Dict[Key, RunResult]]:
+    """{(scene, selector, seed): result} for one protocol's runs (first repeats) under one arm's folder, and for the
+    current final-sets of those runs (`schedule_pairs`: one whose run has other views now is left out)."""
+    # a judge folder holds the HP-GS protocol's runs too: keys are per protocol
+    runs = {(r.scene, r.selector, r.seed): r for r in load_results(folder)
+            if not r.repeat and not r.is_reference and r.protocol == protocol}
     pairs, _ = schedule_pairs(list(runs.values()), load_final_sets(folder))
     return runs, {(p.run.scene, p.run.selector, p.run.seed): p.final for p in pairs}
 
