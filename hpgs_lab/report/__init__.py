@@ -59,6 +59,8 @@ def write_report(out: Path, results_page: Optional[Path] = None) -> List[Path]:
     for name, text in sections.items():
         if text:
             written.append(write_text_atomic(out / name, text))
+        else:  # a section now empty (e.g. nothing missing any more) leaves no stale file from an earlier report
+            (out / name).unlink(missing_ok=True)
     written += stress_plot(rows, out) + make_plots(rows, out) + gain_plot(rows, out)
     if results_page is not None:
         written.append(write_text_atomic(results_page, results_page_text(out, {**sections, "schedule": schedule})))

@@ -409,6 +409,20 @@ def test_the_page_lists_the_runs_and_final_sets_the_grid_lacks(tmp_path):
     assert "**Runs not in the folder**" in text
     assert "- fisherrf protocol, 2 runs missing: s3/hpgs/seed2, s5/farthest/seed1." in text
     assert "- fisherrf protocol, 1 final-set missing: s2/random/seed0." in text
+    assert "s3/hpgs/seed2" in (out / "missing.md").read_text()
+    # the runs that were missing arrive (here: the seed-2 row goes): the next report drops the stale missing.md
+    for scene, selector, seed in (("s3", "farthest", 2), ("s3", "random", 2)):
+        (out / scene / "fisherrf" / selector / f"seed{seed}.json").unlink()
+        (out / scene / "fisherrf" / selector / "final-set" / f"seed{seed}.json").unlink()
+    restored = next(r for r in rows({"farthest": 0.5}, scenes=("s5",), seeds=(1,)) if r.selector == "farthest")
+    write_rows(out, [dataclasses.replace(restored, **views)])
+    source = SourceRun("farthest", 1, 0, ["v0", "v1"])
+    make_result("s5", restored.protocol, "final-set", 1, restored.test.psnr + 1, final_set_of=source,
+                **views).to_json(out / "s5" / restored.protocol / "farthest" / "final-set" / "seed1.json")
+    make_result("s2", "fisherrf", "final-set", 0, 21.0, final_set_of=SourceRun("random", 0, 0, ["v0", "v1"]),
+                **views).to_json(out / "s2" / "fisherrf" / "random" / "final-set" / "seed0.json")
+    assert "Runs not in the folder" not in write_report_page(out, page)
+    assert not (out / "missing.md").exists()
     # nothing missing: no section
     write_rows(tmp_path / "full", rows({"farthest": 0.5}, scenes=TWELVE, seeds=(0,)))
     assert "Runs not in the folder" not in write_report_page(tmp_path / "full", tmp_path / "full.md")
