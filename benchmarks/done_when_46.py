@@ -1,0 +1,123 @@
+"""Issue #46's Done-when, read from results folders: is the schedule cost of the trainer small for every selector?
+
+For each FOLDER (a `hpgs bench` results folder with a final-set for its runs), FisherRF protocol: the schedule cost
+(final-set - run PSNR) per selector and pooled over the selectors (`all selectors`: per scene the mean of every
+selector's pairs), each as the mean over scenes with its 95% hierarchical-bootstrap interval, exactly as the
+report's across-scenes table computes them (`hpgs_lab.report.schedule`). The bar: pooled mean at most +0.3 dB, its
+interval's upper end below +0.6, every selector's mean at most +0.5.
+
+With `--against BASE` (the trainer a mechanism is judged against, e.g. `benchmarks/results/real12`), also the run
+PSNR FOLDER - BASE paired by (scene, selector, seed), on the pairs whose runs differ (a run copied from BASE, as fox
+in docs/lab/seeded-restarts-judge-plan.md, is left out: the mechanism did not touch it), its bar `--min-run-gain`
+(-0.2 dB), and the mean run wall of each, whose ratio is read against the lease loads (#46's guard: at most +10%).
+
+    python benchmarks/done_when_46.py benchmarks/results/real6-seeded-restarts --against benchmarks/results/real12 \
+        [--out FILE.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from statistics import mean
+from typing import Dict, List, Optional, Sequence
+
+from hpgs_lab import stats
+from hpgs_lab.report.schedule import cost_by_scene, pooled_cost_by_scene, schedule_pairs
+from hpgs_lab.report.tables import bench_order
+from hpgs_lab.results import RunResult, load_final_sets, load_results
+from hpgs_ns.atomic_write import write_json_atomic
+
+PROTOCOL = "fisherrf"
+MEAN_BAR, UPPER_BAR, SELECTOR_BAR = 0.3, 0.6, 0.5
+
+
+def interval(gains: stats.Gains) -> dict:
+    """Mean over scenes of per-scene means, 95% hierarchical-bootstrap interval, pair count."""
+    est, lo, hi = stats.hierarchical_bootstrap(gains)
+    return {"mean": est, "lo": lo, "hi": hi, "scenes": len(gains), "pairs": sum(len(v) for v in gains.values())}
+
+
+def runs_of(folder: Path) -> List[RunResult]:
+    return [r for r in load_results(folder) if r.protocol == PROTOCOL and not r.is_reference and not r.repeat]
+
+
+def done_when(rows: Sequence[RunResult], final_sets: Sequence[RunResult]) -> dict:
+    """Per-selector and pooled schedule cost, and whether #46's bar holds."""
+    pairs, _ = schedule_pairs(rows, final_sets)
+    order = bench_order()
+    selectors = sorted({p.run.selector for p in pairs if p.run.protocol == PROTOCOL}, key=lambda s: (order.get(s, 99), s))
+    costs = {s: cost_by_scene(pairs, PROTOCOL, s) for s in selectors}
+    costs = {s: c for s, c in costs.items() if c}
+    if not costs:
+        raise SystemExit("done_when_46: no FisherRF run with its final-set here")
+    out = {"selectors": {s: interval(c) for s, c in costs.items()},
+           "all selectors": interval(pooled_cost_by_scene(list(costs.values())))}
+    pooled = out["all selectors"]
+    out["met"] = bool(pooled["mean"] <= MEAN_BAR and pooled["hi"] < UPPER_BAR
+                      and all(v["mean"] <= SELECTOR_BAR for v in out["selectors"].values()))
+    return out
+
+
+def against(rows: Sequence[RunResult], base: Sequence[RunResult], min_gain: float) -> Optional[dict]:
+    """Run PSNR rows - base paired by (scene, selector, seed), runs that differ only; mean walls."""
+    by_key = {(r.scene, r.selector, r.seed): r for r in base}
+    gains: stats.Gains = {}
+    walls: Dict[str, List[float]] = {"folder": [], "base": []}
+    for r in rows:
+        b = by_key.get((r.scene, r.selector, r.seed))
+        if b is None or (r.test.psnr == b.test.psnr and r.chosen_views == b.chosen_views):  # a copy of BASE's run
+            continue
+        cell = gains.setdefault(r.scene, {})
+        cell[len(cell)] = r.test.psnr - b.test.psnr
+        walls["folder"].append(float(r.timing.wall_seconds))
+        walls["base"].append(float(b.timing.wall_seconds))
+    if not gains:
+        return None
+    gain = interval(gains)
+    gain["p"] = stats.sign_flip_test(list(stats.scene_means(gains).values()))
+    wall = {k: mean(v) for k, v in walls.items()}
+    return {"run_gain": gain, "min_run_gain": min_gain, "run_gain_met": bool(gain["mean"] >= min_gain),
+            "mean_wall_s": wall, "wall_ratio": wall["folder"] / wall["base"]}
+
+
+def line(name: str, v: dict) -> str:
+    return f"  {name:>14}: {v['mean']:+.2f} dB [{v['lo']:+.2f}, {v['hi']:+.2f}] ({v['scenes']} scenes, {v['pairs']} pairs)"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("folders", type=Path, nargs="+")
+    ap.add_argument("--against", type=Path, help="results folder of the trainer the folders are judged against")
+    ap.add_argument("--min-run-gain", type=float, default=-0.2)
+    ap.add_argument("--out", type=Path)
+    args = ap.parse_args()
+    base = runs_of(args.against) if args.against else None
+    report = {}
+    for folder in args.folders:
+        rows = runs_of(folder)
+        out = done_when(rows, load_final_sets(folder))
+        print(f"== {folder}: schedule cost, FisherRF protocol")
+        for s, v in out["selectors"].items():
+            print(line(s, v) + ("" if v["mean"] <= SELECTOR_BAR else f"  > {SELECTOR_BAR}"))
+        print(line("all selectors", out["all selectors"]))
+        print(f"  Done-when (mean <= {MEAN_BAR}, upper < {UPPER_BAR}, each selector <= {SELECTOR_BAR}): "
+              f"{'met' if out['met'] else 'not met'}")
+        if base is not None:
+            vs = against(rows, base, args.min_run_gain)
+            out["against"] = {"base": str(args.against), **(vs or {})}
+            if vs:
+                g = vs["run_gain"]
+                print(f"  run PSNR - {args.against}: {g['mean']:+.2f} dB [{g['lo']:+.2f}, {g['hi']:+.2f}], p {g['p']:.3f} "
+                      f"({g['pairs']} pairs that differ; bar >= {args.min_run_gain:+.2f}: "
+                      f"{'met' if vs['run_gain_met'] else 'not met'}); mean wall {vs['mean_wall_s']['folder']:.0f} s "
+                      f"against {vs['mean_wall_s']['base']:.0f} s (x{vs['wall_ratio']:.3f}, read with the leases' loads)")
+            else:
+                print(f"  no run here differs from one in {args.against}")
+        report[str(folder)] = out
+    if args.out:
+        write_json_atomic(args.out, report)
+
+
+if __name__ == "__main__":
+    main()
