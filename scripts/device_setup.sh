@@ -40,9 +40,25 @@ fi
 { grep -qx '/.dev-tracks/' .git/info/exclude || echo /.dev-tracks/ >> .git/info/exclude; }
 [ -d .dev-tracks/bonsai ] || "${PYTHON:-.venv/bin/python}" scripts/device_scene_with_tracks.py \
   ../shared/data/mipnerf360-bonsai ../shared/data/mipnerf360-bonsai-device/images_2 .dev-tracks/bonsai
-# pycolmap (38 MB; triangulation for seed-points active/auto on captures without points) travels in a call of its
-# own: carry [".dev-pyco"] once per machine; scripts/device_env.sh installs it into /tmp/pyco.
+# pycolmap (38 MB; triangulation for seed-points active/auto on captures without points) travels as two halves, like
+# VGG16 (beside a 27 MiB working tree the whole wheel barely fits a call): .dev-pyco/pycolmap.whl.part-0 and -1 with
+# pycolmap.whl.sha256 ("<sha256> 2 <wheel's name>"); scripts/device_env.sh joins and installs it into /tmp/pyco, and
+# scripts/device_calls.py says which calls carry which half.
 { grep -qx '/.dev-pyco/' .git/info/exclude || echo /.dev-pyco/ >> .git/info/exclude; }
-ls .dev-pyco/pycolmap-*.whl > /dev/null 2>&1 || python3 -m pip download -q --no-deps --only-binary=:all: \
-  --python-version 3.12 --platform manylinux_2_28_x86_64 -d .dev-pyco "pycolmap==$(python3 -c 'import pycolmap; print(pycolmap.__version__)' 2>/dev/null || echo 4.2.1)"
+if [ ! -f .dev-pyco/pycolmap.whl.sha256 ]; then
+  mkdir -p .dev-pyco
+  ls .dev-pyco/pycolmap-*.whl > /dev/null 2>&1 || python3 -m pip download -q --no-deps --only-binary=:all: \
+    --python-version 3.12 --platform manylinux_2_28_x86_64 -d .dev-pyco "pycolmap==$(python3 -c 'import pycolmap; print(pycolmap.__version__)' 2>/dev/null || echo 4.2.1)"
+  python3 - <<'PY'
+import hashlib
+from pathlib import Path
+wheel = next(Path(".dev-pyco").glob("pycolmap-*.whl"))
+data = wheel.read_bytes()
+half = (len(data) + 1) // 2
+for i in range(2):
+    Path(f".dev-pyco/pycolmap.whl.part-{i}").write_bytes(data[i * half:(i + 1) * half])
+Path(".dev-pyco/pycolmap.whl.sha256").write_text(f"{hashlib.sha256(data).hexdigest()} 2 {wheel.name}\n")
+wheel.unlink()
+PY
+fi
 du -sh .dev .dev-vgg/* .dev-pyco

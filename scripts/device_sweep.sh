@@ -3,7 +3,8 @@
 # machine stays held (30 min from its start), and hand back what has finished. A machine's first call carries .dev;
 # a call carries the .devdata/<folder> of the scenes it adds (scripts/device_suite_data.py). A carried path is gone
 # on the machine after a call that does not name it, so each start copies .devdata into /tmp/devdata, which the
-# sweeps read, and scripts/device_env.sh keeps the kernels and LPIPS weights in /tmp: later calls carry other
+# sweeps read, and scripts/device_env.sh keeps the kernels, pycolmap and LPIPS weights in /tmp (which call carries
+# what: scripts/device_calls.py): later calls carry other
 # scenes, or one half of .dev-vgg each (VGG16, which `hpgs`, `condorcet` and `blend` need with the shipped
 # preference model; start those sweeps once both halves are there: `env` prints what the machine has).
 # Chain the calls back to back: a machine idle for 30 s is given back, and the sweeps running on it die with it.

@@ -1,0 +1,107 @@
+"""Which paths each device call carries, so that none passes the device tool's 64 MiB (working tree included).
+
+Every call carries the working tree (tracked files and untracked ones git does not ignore) plus its `carry` list.
+A lease's setup calls must bring: the wheels, kernels and prelude (`.dev/whl .dev/prebuilt .dev/prelude.sh
+.dev/sitecustomize.py`, the first call: `device_sweep.sh env` installs them), the halves of pycolmap's wheel and of
+VGG16 (`.dev-pyco/pycolmap.whl.part-*`, `.dev-vgg/vgg16.ckpt.part-*`, each with its `.sha256`:
+`scripts/device_env.sh` joins them once both have come), AlexNet (`.dev/extra`) and each scene's
+`.devdata/<folder>`. This packs them, largest first, into as few calls as fit (first-fit). Prints one JSON carry
+list per call, with its size on disk.
+
+    python scripts/device_calls.py --suite real12 --suite-scenes bonsai juicebox stitch [--limit-mib 63.0]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+from pathlib import Path
+from typing import Dict, List, Sequence
+
+REPO = Path(__file__).resolve().parents[1]
+MIB = 2**20
+FIRST = (".dev/whl", ".dev/prebuilt", ".dev/prelude.sh", ".dev/sitecustomize.py")
+VGG_HALVES = ((".dev-vgg/vgg16.ckpt.part-0", ".dev-vgg/vgg16.ckpt.sha256"),
+              (".dev-vgg/vgg16.ckpt.part-1", ".dev-vgg/vgg16.ckpt.sha256"))
+PYCOLMAP_HALVES = ((".dev-pyco/pycolmap.whl.part-0", ".dev-pyco/pycolmap.whl.sha256"),
+                   (".dev-pyco/pycolmap.whl.part-1", ".dev-pyco/pycolmap.whl.sha256"))
+ALEXNET = (".dev/extra",)
+
+
+class CallsError(SystemExit):
+    """One line naming what does not fit or is missing."""
+
+
+def file_bytes(path: Path) -> int:
+    """What a file takes on disk (whole blocks): the device tool's 64 MiB counts so (a call of 63.9 MiB of file
+    contents, 67 MiB in blocks, was refused)."""
+    return path.stat().st_blocks * 512
+
+
+def size(path: Path) -> int:
+    """Bytes of a file, or of every file under a folder; a missing path is an error naming its fix."""
+    if not path.exists():
+        raise CallsError(f"device_calls: {path} is missing: run scripts/device_setup.sh (and scripts/device_suite_data.py "
+                         "for scenes) first")
+    return file_bytes(path) if path.is_file() else sum(file_bytes(p) for p in path.rglob("*") if p.is_file())
+
+
+def tree_bytes(repo: Path) -> int:
+    """What every call carries anyway: tracked files and untracked files git does not ignore."""
+    names = subprocess.run(["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard"], cwd=repo,
+                           capture_output=True, check=True).stdout.decode().split("\0")
+    return sum(file_bytes(repo / n) for n in names if n and (repo / n).is_file())
+
+
+def pack(tree: int, limit: int, first: Sequence[str], units: Sequence[Sequence[str]],
+         sizes: Dict[str, int]) -> List[List[str]]:
+    """Calls as carry lists: `first` opens the first call; each unit (paths that travel together, e.g. a half and
+    its checksum) goes, largest first, into the first call with room, else into a new call at the end. A path
+    already in a call costs nothing more there. Every call's tree + carry is at most `limit` bytes."""
+    calls: List[List[str]] = [list(first)]
+
+    def total(carry: Sequence[str]) -> int:
+        return tree + sum(sizes[p] for p in dict.fromkeys(carry))
+
+    if total(calls[0]) > limit:
+        raise CallsError(f"device_calls: {' '.join(first)} with the working tree is {total(first) / MIB:.1f} MiB, over "
+                         f"{limit / MIB:.1f}: ignore what the calls do not need (the tree is {tree / MIB:.1f} MiB)")
+    for unit in sorted(units, key=lambda u: -sum(sizes[p] for p in u)):
+        if total(unit) > limit:
+            raise CallsError(f"device_calls: {' '.join(unit)} ({(total(unit) - tree) / MIB:.1f} MiB) does not fit a call "
+                             f"beside the working tree ({tree / MIB:.1f} MiB) under {limit / MIB:.1f} MiB")
+        room = next((c for c in calls if total([*c, *unit]) <= limit), None)
+        if room is None:
+            room = []
+            calls.append(room)
+        room.extend(p for p in unit if p not in room)
+    return calls
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--suite", default="real12")
+    ap.add_argument("--suite-scenes", nargs="+", default=[], help="the scenes the lease runs (default: the suite's)")
+    ap.add_argument("--data-root", type=Path, default=Path("../shared/data"))
+    ap.add_argument("--limit-mib", type=float, default=63.0, help="a little under the tool's 64 MiB")
+    ap.add_argument("--no-pycolmap", action="store_true", help="no run triangulates (no active start, no fox)")
+    ap.add_argument("--no-vgg", action="store_true", help="no hpgs, condorcet or blend run")
+    args = ap.parse_args()
+    sys.path.insert(0, str(REPO))
+    from hpgs_lab.suites import load_suite
+
+    scenes = [(f".devdata/{s.path.name}",) for s in load_suite(args.suite, args.data_root, args.suite_scenes) if not s.smoke]
+    units = [*scenes, ALEXNET, *(() if args.no_pycolmap else PYCOLMAP_HALVES), *(() if args.no_vgg else VGG_HALVES)]
+    sizes = {p: size(REPO / p) for p in {*FIRST, *(p for u in units for p in u)}}
+    tree = tree_bytes(REPO)
+    calls = pack(tree, int(args.limit_mib * MIB), FIRST, units, sizes)
+    print(f"working tree {tree / MIB:.1f} MiB on disk; {len(calls)} calls, each `bash scripts/device_sweep.sh env` "
+          "(the last may be the launch call: it keeps what it carries before the runs start):")
+    for carry in calls:
+        print(f"{(tree + sum(sizes[p] for p in carry)) / MIB:5.1f} MiB  {json.dumps(carry)}")
+
+
+if __name__ == "__main__":
+    main()
