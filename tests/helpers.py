@@ -120,3 +120,13 @@ def train_steps(trainer, steps) -> None:
         trainer.train_iteration(step)
         for callback in trainer.callbacks:
             callback.run_callback_at_location(step, location=At.AFTER_TRAIN_ITERATION)
+
+
+def load_script(path):
+    """A script outside the packages (benchmarks/, scripts/) as a module, to test its functions."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(path.stem, path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module

@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-import importlib.util
 from pathlib import Path
 
 import pytest
+from helpers import load_script
 
 SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "device_calls.py"
 MIB = 2**20
@@ -13,10 +13,7 @@ MIB = 2**20
 
 @pytest.fixture(scope="module")
 def calls():
-    spec = importlib.util.spec_from_file_location("device_calls", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script(SCRIPT)
 
 
 def test_every_call_fits_and_every_path_travels_once(calls):

@@ -2,11 +2,10 @@
 
 from __future__ import annotations
 
-import importlib.util
 from pathlib import Path
 
 import pytest
-from helpers import make_result, write_rows
+from helpers import load_script, make_result, write_rows
 
 from hpgs_lab.results import SourceRun, load_final_sets
 
@@ -17,10 +16,7 @@ VIEWS = {"initial_views": ["v0"], "chosen_views": ["v1"], "num_views_final": 2}
 
 @pytest.fixture(scope="module")
 def done_when():
-    spec = importlib.util.spec_from_file_location("done_when_46", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script(SCRIPT)
 
 
 def folder(root: Path, cost: dict, run_psnr: float = 20.0, wall: float = 100.0, scenes=SCENES) -> Path:
