@@ -89,7 +89,8 @@ class ActiveDatamanagerConfig(FullImageDatamanagerConfig):
     late_view_boost: int = 1
     """Each pass over the active views holds a view this many times while it trails the active views' mean number
     of training draws by more than one, so a view added late catches up on its share of the steps instead of being seen as
-    often as the rest from then on (a view added at step 18400 of 20000 otherwise gets ~1/20 of 1600 steps). 1:
+    often as the rest from then on (a view added at step 18400 of 20000 otherwise gets ~1/20 of 1600 steps). Draws
+    count from the last restart (a restarted splat has seen no view yet). 1:
     every view once a pass (off, the default: on the tuning scenes more draws for late views moved error from the
     initial views' surroundings to theirs without lowering it, docs/lab/late-view-boost.md)."""
     def __post_init__(self) -> None:
@@ -170,7 +171,7 @@ class ActiveDatamanager(FullImageDatamanager):
         self.active: List[int] = self._initial_views()
         self.history: List[RoundRecord] = []
         self.visits: Dict[int, int] = {}
-        """Training steps each view was drawn for so far (late-view-boost reads them)."""
+        """Training steps each view was drawn for since step 0 or the last restart (late-view-boost reads them)."""
         self.selection_signature: Optional[Dict[str, str]] = None
         """The run's selection options as the checkpoint keeps them (set by the pipeline; see `HpgsTrainer`)."""
         self.loaded_selection_signature: Optional[Dict[str, str]] = None

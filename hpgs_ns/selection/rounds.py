@@ -327,6 +327,8 @@ class SelectionRounds:
             raise RoundError("reset-after-add needs the hpgs model and the trainer's optimizers")
         before = model.num_points
         model.reset_to_initial(step, optimizers.optimizers)
+        # the fresh splat has trained on no view: late-view-boost's shares count from here, not from step 0
+        self.datamanager.visits = {}
         if end is None:
             restart_schedules(optimizers)
             what = f"reset after add: {before} -> {model.num_points} Gaussians, schedules restart at step {step}"

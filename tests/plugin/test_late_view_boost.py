@@ -52,3 +52,16 @@ def test_the_view_a_round_adds_catches_up_and_its_visits_survive_a_checkpoint(ti
     assert sum(dm.visits.values()) == 40 and dm.visits[added] == state["visits"][str(added)]
     if boost != 1:
         assert trainer.pipeline.datamanager.selection_signature["late-view-boost"] == "3"
+
+
+def test_draws_count_from_the_last_restart(tiny_scene, tmp_path):
+    """A restart starts a fresh splat that has trained on no view: the shares late-view-boost evens out count from it."""
+    from hpgs_ns.selection.after_add import AfterAddConfig
+
+    cfg = short_config(tiny_scene, tmp_path, steps=40, every=20, rounds=1, selector="random", late_view_boost=3)
+    cfg.pipeline.selection.after_add = AfterAddConfig(restart_at_views=(7,))  # the add at step 20 brings 6 -> 7 views
+    trainer = run_training(cfg)
+    dm = trainer.pipeline.datamanager
+    assert dm.history[0].reset and len(dm.active) == 7
+    # the 20 steps after the restart, not 40; every view starts level, so none is held back for long
+    assert sum(dm.visits.values()) == 20 and max(dm.visits.values()) - min(dm.visits.get(i, 0) for i in dm.active) <= 4
