@@ -82,6 +82,12 @@ def view_rows(root: Path, start: str, arm: str, data_root: Path, cache: Dict[tup
         final_psnr = {v.name: v.psnr for v in pair.final.test_views}
         seen = observed(data_root, run.scene, cache)
         at_start = set().union(*(seen[name] for name in run.initial_views))
+        # how new an added view was when it came: distance to the nearest camera then active, over the final views'
+        # median nearest-neighbour spacing
+        spacing = float(np.median([min(float(np.linalg.norm(where[a] - where[b])) for b in order if b != a)
+                                   for a in order])) or 1.0
+        novelty = {name: min(float(np.linalg.norm(where[name] - where[b])) for b in order[:i]) / spacing
+                   for i, name in enumerate(order) if i >= len(run.initial_views)}
         for view in run.test_views:
             points = seen[view.name]
             nearest = min(order, key=lambda name: float(np.linalg.norm(where[name] - where[view.name])))
@@ -89,14 +95,16 @@ def view_rows(root: Path, start: str, arm: str, data_root: Path, cache: Dict[tup
                          "view": view.name, "run": view.psnr, "final_set": final_psnr[view.name],
                          "group": group_of(added[nearest]), "round": added[nearest],
                          "round_steps": [int(r.step) for r in run.psnr_per_round],
-                         "initial_share": len(points & at_start) / len(points) if points else None})
+                         "initial_share": len(points & at_start) / len(points) if points else None,
+                         "novelty": novelty.get(nearest)})
     return rows
 
 
-def geometry(rows: List[dict]) -> dict:
-    """Cost by thirds of the share seen from step 0, and its correlation with the cost within (scene, selector)."""
-    rows = [r for r in rows if r["initial_share"] is not None]
-    share = np.array([r["initial_share"] for r in rows])
+def geometry(rows: List[dict], field: str = "initial_share") -> dict:
+    """Cost by thirds of `field` (the share seen from step 0, or the nearest added view's novelty at its arrival),
+    and its correlation with the cost within (scene, selector)."""
+    rows = [r for r in rows if r[field] is not None]
+    share = np.array([r[field] for r in rows])
     cost = np.array([r["final_set"] - r["run"] for r in rows])
     edges = np.quantile(share, [0, 1 / 3, 2 / 3, 1])
     thirds = []
@@ -134,6 +142,7 @@ def arm_report(root: Path, start: str, arm: str, other: str, data_root: Path, ca
                 diff[r["group"]].append(twin["run"] - r["run"])
         entry[f"random_run_{other}_minus_{arm}_by_group"] = means({g: diff[g] for g, _, _ in GROUPS})
     entry["by_initial_share"] = geometry(rows)
+    entry["by_novelty"] = geometry(rows, "novelty")
     by_round: Dict[int, List[float]] = defaultdict(list)
     for r in rows:
         by_round[r["round"]].append(r["final_set"] - r["run"])
@@ -152,6 +161,11 @@ def arm_report(root: Path, start: str, arm: str, other: str, data_root: Path, ca
         print(f"  share seen from step 0 {third['share'][0]:.2f}-{third['share'][1]:.2f}: cost {third['mean']:+.2f} dB "
               f"({third['views']} views)")
     print(f"  within (scene, selector): corr(share, cost) {geo['within_corr']:+.3f}")
+    new = entry["by_novelty"]
+    for third in new["thirds"]:
+        print(f"  nearest added view's novelty {third['share'][0]:.2f}-{third['share'][1]:.2f} spacings: cost "
+              f"{third['mean']:+.2f} dB ({third['views']} views)")
+    print(f"  within (scene, selector): corr(novelty, cost) {new['within_corr']:+.3f}")
     return entry
 
 
