@@ -23,8 +23,7 @@ from statistics import mean
 from typing import Dict, List, Optional, Sequence
 
 from hpgs_lab import stats
-from hpgs_lab.report.schedule import cost_by_scene, pooled_cost_by_scene, schedule_pairs
-from hpgs_lab.report.tables import bench_order
+from hpgs_lab.report.schedule import pooled_cost_by_scene, schedule_pairs, selector_costs
 from hpgs_lab.results import RunResult, load_final_sets, load_results
 from hpgs_ns.atomic_write import write_json_atomic
 
@@ -44,11 +43,7 @@ def runs_of(folder: Path) -> List[RunResult]:
 
 def done_when(rows: Sequence[RunResult], final_sets: Sequence[RunResult]) -> dict:
     """Per-selector and pooled schedule cost, and whether #46's bar holds."""
-    pairs, _ = schedule_pairs(rows, final_sets)
-    order = bench_order()
-    selectors = sorted({p.run.selector for p in pairs if p.run.protocol == PROTOCOL}, key=lambda s: (order.get(s, 99), s))
-    costs = {s: cost_by_scene(pairs, PROTOCOL, s) for s in selectors}
-    costs = {s: c for s, c in costs.items() if c}
+    costs = selector_costs(schedule_pairs(rows, final_sets)[0], PROTOCOL)
     if not costs:
         raise SystemExit("done_when_46: no FisherRF run with its final-set here")
     out = {"selectors": {s: interval(c) for s, c in costs.items()},

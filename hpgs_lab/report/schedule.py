@@ -117,6 +117,14 @@ def cost_by_scene(pairs: Sequence[SchedulePair], protocol: str, selector: str) -
     return out
 
 
+def selector_costs(pairs: Sequence[SchedulePair], protocol: str) -> Dict[str, stats.Gains]:
+    """selector -> `cost_by_scene` for one protocol's selectors that have pairs on comparable scenes, in the
+    benchmark's order."""
+    order = bench_order()
+    selectors = sorted({p.run.selector for p in pairs if p.run.protocol == protocol}, key=lambda s: (order.get(s, 99), s))
+    return {sel: c for sel in selectors if (c := cost_by_scene(pairs, protocol, sel))}
+
+
 def pooled_cost_by_scene(by_selector: Sequence[stats.Gains]) -> stats.Gains:
     """scene -> {k: schedule cost}: several selectors' `cost_by_scene` pooled, a scene's (selector, seed) pairs
     numbered in turn, so the bootstrap resamples them as it resamples one selector's seeds."""
@@ -134,7 +142,6 @@ def across_scenes_table(pairs: Sequence[SchedulePair], n_boot: int = 10000, seed
     bootstrap interval (scenes, then seeds within a scene; "n/a" with fewer than two scenes); where a protocol has
     two or more selectors, a row `all selectors` pools them (per scene, the mean over every selector's pairs): the schedule
     cost of the trainer rather than of one selector's order."""
-    order = bench_order()
     lines = ["Across scenes (no smoke-check scenes or stress copies): mean of per-scene mean schedule costs (dB), "
              "95% hierarchical bootstrap interval.", "",
              "| protocol | selector | scenes | pairs | schedule cost | 95% CI |", "|---|---|---|---|---|---|"]
@@ -147,8 +154,7 @@ def across_scenes_table(pairs: Sequence[SchedulePair], n_boot: int = 10000, seed
 
     header = len(lines)
     for protocol in sorted({p.run.protocol for p in pairs}):
-        selectors = sorted({p.run.selector for p in pairs if p.run.protocol == protocol}, key=lambda s: (order.get(s, 99), s))
-        costs = {sel: c for sel in selectors if (c := cost_by_scene(pairs, protocol, sel))}
+        costs = selector_costs(pairs, protocol)
         lines += [row(protocol, sel, c) for sel, c in costs.items()]
         if len(costs) > 1:
             lines.append(row(protocol, "all selectors", pooled_cost_by_scene(list(costs.values()))))
