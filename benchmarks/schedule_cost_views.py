@@ -104,21 +104,21 @@ def geometry(rows: List[dict], field: str = "initial_share") -> dict:
     """Cost by thirds of `field` (the share seen from step 0, or the nearest added view's novelty at its arrival),
     and its correlation with the cost within (scene, selector)."""
     rows = [r for r in rows if r[field] is not None]
-    share = np.array([r[field] for r in rows])
+    values = np.array([r[field] for r in rows])
     cost = np.array([r["final_set"] - r["run"] for r in rows])
-    edges = np.quantile(share, [0, 1 / 3, 2 / 3, 1])
+    edges = np.quantile(values, [0, 1 / 3, 2 / 3, 1])
     thirds = []
     for k in range(3):
-        inside = (share >= edges[k]) & ((share < edges[k + 1]) if k < 2 else (share <= edges[k + 1]))
+        inside = (values >= edges[k]) & ((values < edges[k + 1]) if k < 2 else (values <= edges[k + 1]))
         thirds.append({"share": [round(float(edges[k]), 3), round(float(edges[k + 1]), 3)],
                        "mean": round(float(cost[inside].mean()), 3), "views": int(inside.sum())})
     key = [(r["scene"], r["selector"]) for r in rows]
-    d_share, d_cost = share.copy(), cost.copy()
+    d_values, d_cost = values.copy(), cost.copy()
     for k in set(key):
         m = np.array([x == k for x in key])
-        d_share[m] -= share[m].mean()
+        d_values[m] -= values[m].mean()
         d_cost[m] -= cost[m].mean()
-    return {"thirds": thirds, "within_corr": round(float(np.corrcoef(d_share, d_cost)[0, 1]), 3)}
+    return {"thirds": thirds, "within_corr": round(float(np.corrcoef(d_values, d_cost)[0, 1]), 3)}
 
 
 def means(values: Dict[str, List[float]]) -> Dict[str, dict]:
