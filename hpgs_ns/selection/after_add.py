@@ -62,12 +62,12 @@ class AfterAddConfig:
     from it is locked in as a random start's is (docs/active-training.md). False: an active start that found enough
     points never restarts."""
 
-    restart_seeded_starts: bool = False
+    restart_seeded_starts: bool = True
     """When restart-at-views is empty, a splat seeded by the capture's points (seed-points colmap or colmap-initial,
     or auto where the capture has a point cloud) restarts too, at twice and four times the initial view count, from
-    those points: the views present then train together as from step 0. Off: such a splat never restarts unless
-    restart-at-views says so; on the tuning scenes restarts at 8 and 16 views moved its schedule cost off every view
-    present at a restart, but the run's gain was not significant at half or full scale (docs/lab/restart-colmap.md)."""
+    those points: the views present then train together as from step 0, so the order the views came in costs
+    little (docs/active-training.md). False: such a splat never restarts unless restart-at-views says so (0.4's
+    trainer)."""
 
     restart_at_last_add: bool = False
     """Also start the splat over at the round that brings the training views to the run's final count (initial

@@ -118,30 +118,33 @@ def test_restart_counts_must_be_positive():
     assert restarts_at((8, 16), 6, 8) and restarts_at((8, 16), 15, 17) and not restarts_at((8, 16), 8, 9)
     assert config.restart_counts(4, random_start=False) == (8, 16)
     auto = AfterAddConfig()
-    assert auto.restart_counts(4, random_start=True) == (8, 16) and auto.restart_counts(4, random_start=False) == ()
+    assert auto.restart_counts(4, random_start=True) == (8, 16) and auto.restart_counts(4, random_start=False) == (8, 16)
     assert auto.describe() == "off" and not AfterAddConfig(restart_random_starts=False).restart_counts(4, True)
     # an active start that found its points restarts too, unless told not to; HP-GS's 20 + 7 views never reach 40
     assert auto.restart_counts(4, random_start=False, active_start=True) == (8, 16)
     assert AfterAddConfig(restart_active_starts=False).restart_counts(4, False, active_start=True) == ()
     assert AfterAddConfig(restart_active_starts=False).restart_counts(4, True, active_start=False) == (8, 16)
     assert auto.restart_counts(20, False, active_start=True) == (40, 80)
-    # a start from the capture's points restarts only when asked (restart-seeded-starts), and only as such
-    seeded = AfterAddConfig(restart_seeded_starts=True)
-    assert seeded.describe() == "restart-seeded-starts True" and not seeded.enabled
-    assert seeded.restart_counts(4, random_start=False) == (8, 16)
-    assert AfterAddConfig(restart_seeded_starts=True, restart_active_starts=False).restart_counts(4, False, True) == ()
-    assert AfterAddConfig(restart_seeded_starts=True, restart_random_starts=False).restart_counts(4, True) == ()
-    assert seeded.restart_counts(20, random_start=False, final_views=27) == ()  # HP-GS's 20 + 7: never
+    # a start from the capture's points restarts too by default (restart-seeded-starts), and only as such; 0.4's
+    # trainer (never) is one flag away
+    unseeded = AfterAddConfig(restart_seeded_starts=False)
+    assert unseeded.describe() == "restart-seeded-starts False" and not unseeded.enabled
+    assert unseeded.restart_counts(4, random_start=False) == ()
+    assert unseeded.restart_counts(4, random_start=True) == unseeded.restart_counts(4, False, True) == (8, 16)
+    assert AfterAddConfig(restart_active_starts=False).restart_counts(4, False, True) == ()
+    assert AfterAddConfig(restart_random_starts=False).restart_counts(4, True) == ()
+    assert auto.restart_counts(20, random_start=False, final_views=27) == ()  # HP-GS's 20 + 7: never
 
 
 def test_restart_at_last_add_counts_the_runs_final_views():
-    last = AfterAddConfig(restart_at_last_add=True)
-    assert last.describe() == "restart-at-last-add True" and not last.enabled
+    last = AfterAddConfig(restart_at_last_add=True, restart_seeded_starts=False)
+    assert not last.enabled
     assert last.restart_counts(4, random_start=False, final_views=20) == (20,)  # FisherRF's protocol, seeded start
     assert last.restart_counts(4, random_start=True, final_views=20) == (8, 16, 20)  # with a random start's own
     assert last.restart_counts(20, random_start=True, final_views=27) == (27,)  # HP-GS's 20 + 7: 40 and 80 never come
     assert last.restart_counts(4, random_start=False, final_views=4) == ()  # no round adds views
     assert AfterAddConfig(restart_at_views=(8, 20), restart_at_last_add=True).restart_counts(4, False, final_views=20) == (8, 20)
+    assert AfterAddConfig(restart_at_last_add=True).restart_counts(4, False, final_views=20) == (8, 16, 20)  # seeded
     assert AfterAddConfig().restart_counts(4, random_start=True, final_views=12) == (8,)
 
 
@@ -159,7 +162,8 @@ def seeded_run(tiny_scene, folder: Path, after_add: AfterAddConfig, capsys):
 
 
 def test_a_seeded_run_restarts_only_at_its_last_add(tiny_scene, tmp_path, capsys):
-    trainer, seen, resets, out = seeded_run(tiny_scene, tmp_path / "last", AfterAddConfig(restart_at_last_add=True), capsys)
+    after_add = AfterAddConfig(restart_at_last_add=True, restart_seeded_starts=False)
+    trainer, seen, resets, out = seeded_run(tiny_scene, tmp_path / "last", after_add, capsys)
     model = trainer.pipeline.model
     assert "restart-at-last-add: the splat restarts at 9 views, the run's last add" in out
     assert resets == [False, True]  # 3 -> 6: no; 6 -> 9, the last add: yes
@@ -168,8 +172,8 @@ def test_a_seeded_run_restarts_only_at_its_last_add(tiny_scene, tmp_path, capsys
     assert model.clock_scale == pytest.approx(10 / 40)  # every schedule squeezed into the 10 steps left
 
 
-def test_a_seeded_run_restarts_at_twice_its_initial_views_when_asked(tiny_scene, tmp_path, capsys):
-    trainer, seen, resets, out = seeded_run(tiny_scene, tmp_path / "seeded", AfterAddConfig(restart_seeded_starts=True), capsys)
+def test_a_seeded_run_restarts_at_twice_its_initial_views_by_default(tiny_scene, tmp_path, capsys):
+    trainer, seen, resets, out = seeded_run(tiny_scene, tmp_path / "seeded", AfterAddConfig(), capsys)
     model = trainer.pipeline.model
     assert "seed points: the splat restarts at 6 views from the capture's points" in out
     assert resets == [True, False]  # 3 -> 6: twice the initial views; 6 -> 9: no (12 never comes)
