@@ -1,12 +1,12 @@
 """Which paths each device call carries, so that none passes the device tool's 64 MiB (working tree included).
 
 Every call carries the working tree (tracked files and untracked ones git does not ignore) plus its `carry` list.
-A lease's setup calls must bring: the wheels, kernels and prelude (`.dev/whl .dev/prebuilt .dev/prelude.sh
-.dev/sitecustomize.py`, the first call: `device_sweep.sh env` installs them), the halves of pycolmap's wheel and of
-VGG16 (`.dev-pyco/pycolmap.whl.part-*`, `.dev-vgg/vgg16.ckpt.part-*`, each with its `.sha256`:
-`scripts/device_env.sh` joins them once both have come), AlexNet (`.dev/extra`) and each scene's
-`.devdata/<folder>`. This packs them, largest first, into as few calls as fit (first-fit). Prints one JSON carry
-list per call, with its size on disk.
+A lease's setup calls must bring: the wheels and prelude (`.dev/whl .dev/prelude.sh .dev/sitecustomize.py`, the
+first call: `device_sweep.sh env` installs them), the prebuilt gsplat kernels (`.dev/prebuilt`, kept in /tmp), the
+parts of pycolmap's wheel and of VGG16 (`.dev-pyco/pycolmap.whl.part-*`, `.dev-vgg/vgg16.ckpt.part-*`, each with its
+`.sha256`: `scripts/device_env.sh` joins them once all have come; scripts/device_parts.py cuts them), AlexNet
+(`.dev/extra`) and each scene's `.devdata/<folder>`. This packs them, largest first, into as few calls as fit
+(first-fit). Prints one JSON carry list per call, with its size on disk.
 
     python scripts/device_calls.py --suite real12 --suite-scenes bonsai juicebox stitch [--limit-mib 63.0]
 """
@@ -18,15 +18,14 @@ import json
 import subprocess
 import sys
 from pathlib import Path
-from typing import Dict, List, Sequence
+from typing import Dict, List, Sequence, Tuple
 
 REPO = Path(__file__).resolve().parents[1]
 MIB = 2**20
-FIRST = (".dev/whl", ".dev/prebuilt", ".dev/prelude.sh", ".dev/sitecustomize.py")
-VGG_HALVES = ((".dev-vgg/vgg16.ckpt.part-0", ".dev-vgg/vgg16.ckpt.sha256"),
-              (".dev-vgg/vgg16.ckpt.part-1", ".dev-vgg/vgg16.ckpt.sha256"))
-PYCOLMAP_HALVES = ((".dev-pyco/pycolmap.whl.part-0", ".dev-pyco/pycolmap.whl.sha256"),
-                   (".dev-pyco/pycolmap.whl.part-1", ".dev-pyco/pycolmap.whl.sha256"))
+FIRST = (".dev/whl", ".dev/prelude.sh", ".dev/sitecustomize.py")
+PREBUILT = (".dev/prebuilt",)
+VGG = (".dev-vgg", "vgg16.ckpt")
+PYCOLMAP = (".dev-pyco", "pycolmap.whl")
 ALEXNET = (".dev/extra",)
 
 
@@ -53,6 +52,16 @@ def tree_bytes(repo: Path) -> int:
     names = subprocess.run(["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard"], cwd=repo,
                            capture_output=True, check=True).stdout.decode().split("\0")
     return sum(file_bytes(repo / n) for n in names if n and (repo / n).is_file())
+
+
+def part_units(repo: Path, folder: str, stem: str) -> List[Tuple[str, str]]:
+    """A file cut by scripts/device_parts.py, as units: each part with the checksum file (device_env.sh joins the
+    parts once the count the checksum names has come)."""
+    sha = f"{folder}/{stem}.sha256"
+    if not (repo / sha).is_file():
+        raise CallsError(f"device_calls: {sha} is missing: run scripts/device_setup.sh")
+    parts = sorted((repo / folder).glob(f"{stem}.part-*"), key=lambda p: int(p.name.rsplit("-", 1)[1]))
+    return [(f"{folder}/{p.name}", sha) for p in parts]
 
 
 def pack(tree: int, limit: int, first: Sequence[str], units: Sequence[Sequence[str]],
@@ -93,7 +102,8 @@ def main() -> None:
     from hpgs_lab.suites import load_suite
 
     scenes = [(f".devdata/{s.path.name}",) for s in load_suite(args.suite, args.data_root, args.suite_scenes) if not s.smoke]
-    units = [*scenes, ALEXNET, *(() if args.no_pycolmap else PYCOLMAP_HALVES), *(() if args.no_vgg else VGG_HALVES)]
+    units = [*scenes, ALEXNET, PREBUILT, *(() if args.no_pycolmap else part_units(REPO, *PYCOLMAP)),
+             *(() if args.no_vgg else part_units(REPO, *VGG))]
     sizes = {p: size(REPO / p) for p in {*FIRST, *(p for u in units for p in u)}}
     tree = tree_bytes(REPO)
     calls = pack(tree, int(args.limit_mib * MIB), FIRST, units, sizes)

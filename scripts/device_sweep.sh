@@ -6,7 +6,7 @@
 # sweeps read, and scripts/device_env.sh keeps the kernels, pycolmap and LPIPS weights in /tmp (which call carries
 # what: scripts/device_calls.py): later calls carry other
 # scenes, or one half of .dev-vgg each (VGG16, which `hpgs`, `condorcet` and `blend` need with the shipped
-# preference model; start those sweeps once both halves are there: `env` prints what the machine has).
+# preference model; start those sweeps once every part is there: `env` prints what the machine has).
 # Chain the calls back to back: a machine idle for 30 s is given back, and the sweeps running on it die with it.
 # Runs sharing a GPU run under CUDA MPS (`hpgs bench --mps auto`: the lent machines have nvidia-cuda-mps-control in
 # /usr/local/nvidia/bin, and --runs-per-gpu then defaults to 12); pass --mps off in ARGS to compare without it.
