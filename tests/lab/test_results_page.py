@@ -31,3 +31,16 @@ def test_every_interval_in_the_readme_verdict_is_on_the_results_page():
     for gain, lo, hi in quoted:
         gain, lo, hi = (x.replace("−", "-") for x in (gain, lo, hi))
         assert f"| {gain} | [{lo}, {hi}] |" in page, f"README quotes {gain} [{lo}, {hi}], not on docs/results.md"
+
+
+def test_the_real12_report_regenerates_exactly_from_its_committed_runs(tmp_path, monkeypatch):
+    # issue #47's matrix: every wave merged into benchmarks/results/real12 must leave its report current
+    real12 = Path("benchmarks/results/real12")
+    shutil.copytree(REPO / real12, tmp_path / real12, ignore=shutil.ignore_patterns("*.png", "*.jpg", "_*", "*.md"))
+    monkeypatch.chdir(tmp_path)
+    write_report(real12)
+    pages = sorted(p.name for p in (REPO / real12).glob("*.md") if p.name != "README.md")
+    assert {"table.md", "paired.md", "hpgs_paper.md"} <= set(pages)
+    for name in pages:
+        assert (real12 / name).read_text() == (REPO / real12 / name).read_text(), (
+            f"{real12 / name} is stale: hpgs bench --out {real12} --report-only")
