@@ -362,6 +362,23 @@ def rebind_optimizers(optimizers, param_groups: Dict[str, List[torch.nn.Paramete
         optimizers.parameters[name] = params
 
 
+SEEDED_RESTARTS = "after-add.restart-seeded-starts"
+
+
+def seeded_restarts_key(saved: Dict[str, str], now: Dict[str, str]) -> Dict[str, str]:
+    """A checkpoint's signature in today's form for restart-seeded-starts: checkpoints written before it had its own
+    key (when it was off by default) name it inside "after-add" only when it was on, and never restarted otherwise."""
+    words = [] if saved.get("after-add", "off") == "off" else saved["after-add"].split(", ")
+    flag = next((w for w in words if w.startswith("restart-seeded-starts ")), None)
+    if flag is None:
+        return {**saved, SEEDED_RESTARTS: "False"} if SEEDED_RESTARTS in now and SEEDED_RESTARTS not in saved else saved
+    rest = ", ".join(w for w in words if w != flag) or "off"
+    out = {**saved, "after-add": rest}
+    if SEEDED_RESTARTS in now and SEEDED_RESTARTS not in saved:
+        out[SEEDED_RESTARTS] = flag.split(" ", 1)[1]
+    return out
+
+
 def check_resume_matches(pipeline) -> None:
     """Refuse (one line) a resume whose selection options differ from those the checkpoint was trained with: the
     round log would mix two selectors' or schedules' choices."""
@@ -377,11 +394,14 @@ def check_resume_matches(pipeline) -> None:
             saved = {**saved, "seed-points": "active"}
         elif now["seed-points"] != "active":
             saved = {**saved, "seed-points": now["seed-points"]}
+    saved = seeded_restarts_key(saved, now)
     changed = [key for key in sorted(set(saved) | set(now)) if saved.get(key) != now.get(key)]
     if changed:
         diff = "; ".join(f"{key}: checkpoint {saved.get(key, '(unset)')}, now {now.get(key, '(unset)')}" for key in changed)
         hint = (" (--pipeline.datamanager.seed-points as it was trained: the default was colmap before auto)"
                 if "seed-points" in changed else "")
+        if SEEDED_RESTARTS in changed and saved.get(SEEDED_RESTARTS) == "False":
+            hint += " (--pipeline.selection.after-add.restart-seeded-starts False: 0.4 trained seeded starts without restarts)"
         raise CheckpointError(f"this resume changes what the checkpoint was trained with ({diff}); resume with the "
                               f"checkpoint's options{hint}, or start a new run without --load-dir")
 

@@ -125,12 +125,13 @@ class AfterAddConfig:
             counts = tuple(n for n in counts if initial_views < n <= final_views)
         return tuple(sorted(set(counts)))
 
-    def describe(self) -> str:
-        """The options that differ from the defaults, as flags (for the log, the start-up line and the resume check)."""
+    def describe(self, skip: Iterable[str] = ()) -> str:
+        """The options that differ from the defaults, as flags (for the log, the start-up line and the resume check),
+        leaving out the fields named in `skip`."""
         def words(value) -> str:
             return " ".join(map(str, value)) if isinstance(value, tuple) else str(value)
 
-        changed = [f for f in fields(self) if getattr(self, f.name) != f.default]
+        changed = [f for f in fields(self) if getattr(self, f.name) != f.default and f.name not in skip]
         on = [f"{f.name.replace('_', '-')} {words(getattr(self, f.name))}" for f in changed]
         return ", ".join(on) if on else "off"
 

@@ -105,7 +105,9 @@ class SelectionLoopConfig(InstantiateConfig):
         the seed and the round schedule. max-rounds and the step count may grow (a longer run adds rounds)."""
         signature = {"selector": str(self.selector), "seed": str(int(seed)), "select-every": str(self.select_every),
                      "select-at": str(list(self.select_at)), "views-per-round": str(self.views_per_round),
-                     "reset-after-add": str(bool(self.reset_after_add)), "after-add": self.after_add.describe()}
+                     "reset-after-add": str(bool(self.reset_after_add)),
+                     # restart-seeded-starts has its own key where it acts (the pipeline's), since its default changed
+                     "after-add": self.after_add.describe(skip=("restart_seeded_starts",))}
         options = self.selector_config()
         for f in fields(options):
             if not f.name.startswith("_"):

@@ -164,6 +164,8 @@ def seeded_run(tiny_scene, folder: Path, after_add: AfterAddConfig, capsys):
 def test_a_seeded_run_restarts_only_at_its_last_add(tiny_scene, tmp_path, capsys):
     after_add = AfterAddConfig(restart_at_last_add=True, restart_seeded_starts=False)
     trainer, seen, resets, out = seeded_run(tiny_scene, tmp_path / "last", after_add, capsys)
+    signature = trainer.pipeline.datamanager.selection_signature
+    assert signature["after-add.restart-seeded-starts"] == "False" and signature["after-add"] == "restart-at-last-add True"
     model = trainer.pipeline.model
     assert "restart-at-last-add: the splat restarts at 9 views, the run's last add" in out
     assert resets == [False, True]  # 3 -> 6: no; 6 -> 9, the last add: yes
@@ -180,3 +182,37 @@ def test_a_seeded_run_restarts_at_twice_its_initial_views_by_default(tiny_scene,
     assert seen[19]["model_step"] == 19 and seen[20]["model_step"] == 0 and seen[39]["model_step"] == 19
     assert seen[20]["num_points"] == model.initial_gaussians["means"].shape[0] == 1500  # back to the seed points
     assert model.clock_scale == pytest.approx(20 / 40)  # every schedule squeezed into the 20 steps left
+    signature = trainer.pipeline.datamanager.selection_signature
+    assert signature["after-add.restart-seeded-starts"] == "True" and signature["after-add"] == "off"
+
+
+def resume(saved, now):
+    from types import SimpleNamespace
+
+    from hpgs_ns.trainer import check_resume_matches
+
+    check_resume_matches(SimpleNamespace(datamanager=SimpleNamespace(loaded_selection_signature=saved,
+                                                                     selection_signature=now)))
+
+
+def test_a_checkpoint_from_before_seeded_restarts_were_the_default_resumes_as_it_was_trained():
+    from hpgs_ns.trainer import CheckpointError
+
+    base = {"selector": "random", "seed": "0", "seed-points": "colmap"}
+    today = {**base, "after-add": "off", "after-add.restart-seeded-starts": "True"}
+    # 0.4's checkpoint of a COLMAP start (never restarted): refused under today's default, naming the flag that
+    # resumes it; with the flag it resumes
+    old = {**base, "after-add": "off"}
+    with pytest.raises(CheckpointError, match=r"after-add.restart-seeded-starts: checkpoint False, now True.*"
+                                              r"restart-seeded-starts False: 0.4 trained seeded starts without"):
+        resume(old, today)
+    resume(old, {**today, "after-add.restart-seeded-starts": "False"})
+    # 0.4's checkpoint that asked for it (then written inside after-add) resumes under today's default as it is
+    resume({**base, "after-add": "restart-seeded-starts True, refine-steps 10"},
+           {**today, "after-add": "refine-steps 10"})
+    with pytest.raises(CheckpointError, match="after-add: checkpoint refine-steps 10, now off"):
+        resume({**base, "after-add": "restart-seeded-starts True, refine-steps 10"}, today)
+    # a random start has no such key, then or now: an old checkpoint of one resumes unchanged
+    random_now = {**base, "seed-points": "colmap", "after-add": "off"}
+    resume({**base, "after-add": "off"}, random_now)
+    resume({**base, "after-add": "restart-seeded-starts True"}, random_now)
