@@ -169,6 +169,12 @@ def stress_plot(rows: Sequence[RunResult], out: Path) -> List[Path]:
     return paths
 
 
+def scene_style(index: int) -> dict:
+    """Colour and marker of the index-th scene: matplotlib's cycle has ten colours, so every ten scenes the marker
+    changes (twelve scenes in colours alone showed two pairs alike)."""
+    return {"color": f"C{index % 10}", "marker": "o^sDv"[index // 10 % 5]}
+
+
 def gain_plot(rows: Sequence[RunResult], out: Path) -> List[Path]:
     """Per protocol: each selector's paired PSNR gain over random, one dot per (scene, seed), with the mean over
     scenes and its 95% hierarchical-bootstrap interval."""
@@ -188,7 +194,7 @@ def gain_plot(rows: Sequence[RunResult], out: Path) -> List[Path]:
             for j, scene in enumerate(scenes):
                 values = list(gains.get(scene, {}).values())
                 xs = [i - 0.25 + 0.5 * (j + 0.5) / len(scenes)] * len(values)
-                ax.scatter(xs, values, s=14, color=f"C{j}", label=scene if i == 0 else None, zorder=3)
+                ax.scatter(xs, values, s=14, **scene_style(j), label=scene if i == 0 else None, zorder=3)
             if gains:
                 est, lo, hi = stats.hierarchical_bootstrap(gains)
                 ax.errorbar([i + 0.32], [est], yerr=[[est - lo], [hi - est]], fmt="D", color="k", capsize=4, zorder=4)

@@ -16,7 +16,7 @@ from helpers import make_result
 from hpgs_lab.names import FINAL_SET
 from hpgs_lab.protocols import fisherrf_schedule
 from hpgs_lab.report import device_counts, load_results, markdown_table, schedule_cost_table, work_table, write_report
-from hpgs_lab.report.plots import camera_centres, camera_map
+from hpgs_lab.report.plots import camera_centres, camera_map, scene_style
 from hpgs_lab.results import Provenance, RunResult, SourceRun, command_options, data_from_command, load_final_sets, start_label
 from hpgs_lab.runs import Bench, Job, resolve_scenes, run_settings, summed_work, train_args
 from hpgs_lab.suites import scene_from_folder
@@ -483,3 +483,9 @@ def test_bench_passes_the_option_and_keeps_its_results_apart(tiny_scene, tmp_pat
     plain = Bench(scenes=[tiny_scene], protocols=["fisherrf"])
     assert plain.jobs()[0].protocol.name == "fisherrf"
     assert "--pipeline.selection.reset-after-add" not in train_args(plain, plain.jobs()[0], tmp_path)
+
+
+def test_twelve_scenes_in_the_gain_plot_look_each_unlike_the_others():
+    styles = [tuple(sorted(scene_style(j).items())) for j in range(12)]
+    assert len(set(styles)) == 12  # matplotlib's ten colours alone gave scenes 0 and 10 the same dot
+    assert scene_style(0)["color"] == scene_style(10)["color"] and scene_style(0)["marker"] != scene_style(10)["marker"]
