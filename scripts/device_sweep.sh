@@ -46,12 +46,19 @@ bench_one() {
 }
 device_env() {
   # prelude once per machine: installing the wheels again under a running sweep would pull its modules away; so
-  # later calls set its exports here (.dev/prelude.sh comes with the workplace, read-only, exports and install in one)
+  # later calls set its exports here (.dev/prelude.sh comes with the workplace, read-only, exports and install in one).
+  # It runs from a staging folder where the wheels gather, since they may come over several calls (device_wheels.sh).
+  if [ ! -f /tmp/site/.prelude-done ]; then
+    source scripts/device_wheels.sh
+    if stage_wheels /tmp/prelude-stage; then
+      (cd /tmp/prelude-stage && source .dev/prelude.sh) && touch /tmp/site/.prelude-done
+    else
+      echo "device_env: $(wheels_carried /tmp/prelude-stage) carried so far; the prelude runs once all have come"
+    fi
+  fi
   if [ -f /tmp/site/.prelude-done ]; then
     export PYTHONPATH=/tmp/site:$PWD PATH=/tmp/site/bin:$PATH TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=16 PYTHONUNBUFFERED=1
     export TORCH_FORCE_NO_WEIGHTS_ONLY_LOAD=1
-  else
-    source .dev/prelude.sh && touch /tmp/site/.prelude-done
   fi
   source scripts/device_env.sh
 }
