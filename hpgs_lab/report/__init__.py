@@ -7,7 +7,8 @@ decided in `paired.md` only (`stats`: runs paired by scene and seed, intervals o
 and spreads are for reading. Where runs have final-set references (`hpgs bench --final-set`), `table.md` and the
 results page also show each run's schedule cost (`schedule`), and `power.md` how likely the comparisons were to
 find a gain of 0.5 or 1 dB (`bench.power`); `hpgs_paper.md` puts protocol-`hpgs` runs beside the HP-GS paper's
-table (`paper_table`); `missing.md` names what the folder's grid lacks (`missing`).
+table (`paper_table`); `missing.md` names what the folder's grid lacks (`missing`); with both rankings, `paired.md`
+ends with the default-selector rule applied to them (`default_rule`).
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ from pathlib import Path
 from typing import Dict, List, Optional
 
 from hpgs_lab.power import power_section
+from hpgs_lab.report.default_rule import default_rule_section
 from hpgs_lab.report.missing import missing_section
 from hpgs_lab.report.paired import comparable, comparison_plan, paired_report, planned_comparisons, verdict_sentence
 from hpgs_lab.report.paper_table import hpgs_paper_table
@@ -36,6 +38,7 @@ from hpgs_ns.atomic_write import write_text_atomic
 DEFAULT_RESULTS_PAGE = Path("docs/results.md")
 SCHEDULE_TITLE = "**Schedule cost (final-set − run)**"
 VIEWS_ALONE_TITLE = "### By their views alone (final-sets)"
+DEFAULT_RULE_TITLE = "### The default of `ns-train hpgs`"
 
 
 def write_report(out: Path, results_page: Optional[Path] = None) -> List[Path]:
@@ -47,11 +50,15 @@ def write_report(out: Path, results_page: Optional[Path] = None) -> List[Path]:
     schedule = schedule_cost_table(rows, final_sets)
     table = markdown_table(rows) + (f"\n{SCHEDULE_TITLE}\n\n{schedule}" if schedule else "")
     paired = paired_report(rows)
-    views_alone = paired_report(final_set_rows(rows, final_sets))
+    final_rows = final_set_rows(rows, final_sets)
+    views_alone = paired_report(final_rows)
     if views_alone:  # the second ranking: each run's final views trained from step 0, compared the same way
         paired += (f"\n{VIEWS_ALONE_TITLE}\n\nThe same comparisons on the runs' final-sets (each run's final views "
                    "trained from step 0 with its seed): which selector picks the better views, apart from when they "
                    f"arrived.\n\n{views_alone}")
+        rule = default_rule_section(rows, final_rows)
+        if rule:
+            paired += f"\n{DEFAULT_RULE_TITLE}\n\n{rule}"
     sections = {"table.md": table, "paired.md": paired, "missing.md": missing_section(rows, final_sets),
                 "work.md": work_table(rows),
                 "noise.md": noise_table(rows), "throughput.md": throughput_table(rows), "stress.md": stress_table(rows),
