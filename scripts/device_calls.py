@@ -98,7 +98,10 @@ def wheel_groups(repo: Path, group_bytes: int = 8 * MIB) -> List[Tuple[str]]:
         folder = out / f"group-{k}"
         folder.mkdir(parents=True)
         for wheel in group:
-            os.link(wheel, folder / wheel.name)
+            try:
+                os.link(wheel, folder / wheel.name)
+            except OSError:  # another file system (or no hard links): a copy carries the same bytes
+                shutil.copy2(wheel, folder / wheel.name)
         for name in WHEEL_COMPANIONS:
             shutil.copy2(repo / ".dev" / name, folder / name)
         (folder / "whl.list").write_text(listing)
