@@ -60,7 +60,7 @@ class HpgsPipeline(VanillaPipeline):
             # written since active starts restart by default: a checkpoint without it (0.3's) never restarted
             signature["after-add.restart-active-starts"] = str(bool(selection.after_add.restart_active_starts))
         elif not getattr(self.model, "random_start", True):
-            # a start from the capture's points: whether it restarts (on by default since 0.4's trainer left it off)
+            # a start from the capture's points: whether it restarts (a default that changed: before, it never did)
             signature["after-add.restart-seeded-starts"] = str(bool(selection.after_add.restart_seeded_starts))
         if getattr(self.datamanager.config, "late_view_boost", 1) != 1:  # passes weighted by visits
             signature["late-view-boost"] = str(self.datamanager.config.late_view_boost)

@@ -401,7 +401,7 @@ def check_resume_matches(pipeline) -> None:
         hint = (" (--pipeline.datamanager.seed-points as it was trained: the default was colmap before auto)"
                 if "seed-points" in changed else "")
         if SEEDED_RESTARTS in changed and saved.get(SEEDED_RESTARTS) == "False":
-            hint += " (--pipeline.selection.after-add.restart-seeded-starts False: 0.4 trained seeded starts without restarts)"
+            hint += " (--pipeline.selection.after-add.restart-seeded-starts False: seeded starts did not restart before)"
         raise CheckpointError(f"this resume changes what the checkpoint was trained with ({diff}); resume with the "
                               f"checkpoint's options{hint}, or start a new run without --load-dir")
 

@@ -66,8 +66,8 @@ class AfterAddConfig:
     """When restart-at-views is empty, a splat seeded by the capture's points (seed-points colmap or colmap-initial,
     or auto where the capture has a point cloud) restarts too, at twice and four times the initial view count, from
     those points: the views present then train together as from step 0, so the order the views came in costs
-    little (docs/active-training.md). False: such a splat never restarts unless restart-at-views says so (0.4's
-    trainer)."""
+    little (docs/active-training.md). False: such a splat never restarts unless restart-at-views says so (the
+    behaviour before this default)."""
 
     restart_at_last_add: bool = False
     """Also start the splat over at the round that brings the training views to the run's final count (initial

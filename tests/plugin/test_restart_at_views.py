@@ -204,7 +204,7 @@ def test_a_checkpoint_from_before_seeded_restarts_were_the_default_resumes_as_it
     # resumes it; with the flag it resumes
     old = {**base, "after-add": "off"}
     with pytest.raises(CheckpointError, match=r"after-add.restart-seeded-starts: checkpoint False, now True.*"
-                                              r"restart-seeded-starts False: 0.4 trained seeded starts without"):
+                                              r"restart-seeded-starts False: seeded starts did not restart before"):
         resume(old, today)
     resume(old, {**today, "after-add.restart-seeded-starts": "False"})
     # 0.4's checkpoint that asked for it (then written inside after-add) resumes under today's default as it is
