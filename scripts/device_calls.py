@@ -23,6 +23,9 @@ import sys
 from pathlib import Path
 from typing import Dict, List, Sequence, Tuple
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # its sibling script, also when loaded by a test
+from device_parts import part_paths  # noqa: E402
+
 REPO = Path(__file__).resolve().parents[1]
 MIB = 2**20
 WHEELS = ".dev/whl"
@@ -66,8 +69,7 @@ def part_units(repo: Path, folder: str, stem: str) -> List[Tuple[str, str]]:
     sha = f"{folder}/{stem}.sha256"
     if not (repo / sha).is_file():
         raise CallsError(f"device_calls: {sha} is missing: run scripts/device_setup.sh")
-    parts = sorted((repo / folder).glob(f"{stem}.part-*"), key=lambda p: int(p.name.rsplit("-", 1)[1]))
-    return [(f"{folder}/{p.name}", sha) for p in parts]
+    return [(f"{folder}/{p.name}", sha) for p in part_paths(repo / folder, stem)]
 
 
 def wheel_groups(repo: Path, group_bytes: int = 8 * MIB) -> List[Tuple[str]]:

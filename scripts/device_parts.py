@@ -12,9 +12,12 @@ from __future__ import annotations
 
 import argparse
 import hashlib
-import os
+import sys
 from pathlib import Path
 from typing import List, Optional
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run as a script (device_setup.sh): the repo's modules
+from hpgs_ns.atomic_write import atomic_path  # noqa: E402
 
 
 class PartsError(SystemExit):
@@ -27,9 +30,8 @@ def part_paths(folder: Path, stem: str) -> List[Path]:
 
 
 def write_atomic(path: Path, data: bytes) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_bytes(data)
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data)
 
 
 def split(data: bytes, folder: Path, stem: str, parts: int, name: Optional[str] = None) -> List[Path]:
