@@ -8,7 +8,7 @@ from __future__ import annotations
 from typing import Dict, List, Optional, Sequence
 
 from hpgs_lab import stats
-from hpgs_lab.report.paired import comparable, comparison_plan
+from hpgs_lab.report.paired import comparable, protocol_comparisons
 from hpgs_lab.results import RunResult
 
 DEFAULT_SELECTOR = "hpgs"
@@ -30,9 +30,7 @@ def gains_over(comparisons: Sequence[stats.Comparison], default: str) -> Dict[st
 
 def rule_gains(rows: Sequence[RunResult], protocol: str, default: str) -> Dict[str, dict]:
     group = [r for r in comparable(rows) if r.protocol == protocol]
-    primary, secondary = comparison_plan(group, protocol)
-    comparisons = stats.compare(group, protocol, primary + secondary, metric="psnr", primary=primary, holm_primary=True)
-    return gains_over(comparisons, default)
+    return gains_over(protocol_comparisons(group, protocol), default)
 
 
 def default_choice(runs: Dict[str, dict], final_sets: Dict[str, dict], default: str = DEFAULT_SELECTOR) -> str:

@@ -42,6 +42,13 @@ def planned_comparisons(rows: Sequence[RunResult]) -> dict:
     return {p: len(comparison_plan([r for r in rows if r.protocol == p], p)[0]) for p in {r.protocol for r in rows}}
 
 
+def protocol_comparisons(group: Sequence[RunResult], protocol: str, metric: str = "psnr") -> List[stats.Comparison]:
+    """One protocol's planned comparisons (`comparison_plan`), primary ones Holm-adjusted together: what paired.md
+    prints and what the default-selector rule reads."""
+    primary, secondary = comparison_plan(group, protocol)
+    return stats.compare(group, protocol, primary + secondary, metric=metric, primary=primary, holm_primary=True)
+
+
 def paired_report(rows: Sequence[RunResult]) -> str:
     """Per protocol: the scenes (training and test views), the paired gain over random per scene, and the
     comparisons with their 95% intervals and verdicts, for PSNR, SSIM and LPIPS."""
@@ -66,8 +73,7 @@ def paired_report(rows: Sequence[RunResult]) -> str:
                     stats.scene_table(stats.scene_summaries(gains), "psnr"), ""]
         sentences = []
         for metric in METRICS:
-            comparisons = stats.compare(group, protocol, primary + secondary, metric=metric, primary=primary,
-                                        holm_primary=True)
+            comparisons = protocol_comparisons(group, protocol, metric)
             out += [f"**{metric.upper()}**", "", stats.comparison_table(comparisons), ""]
             if metric == "psnr":
                 sentences = [verdict_sentence(c) for c in comparisons if c.n_scenes]
