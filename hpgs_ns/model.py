@@ -102,6 +102,14 @@ class HpgsSplatfactoModelConfig(SplatfactoModelConfig):
     otherwise fitted with every coefficient at once from a few views). Off: splatfacto's one degree for all; off
     by default because on the tuning scenes it did not lower the schedule cost (docs/lab/restart-colmap.md). With
     no view added it still acts, on Gaussians first seen after step 0."""
+    means_lr_by_age: bool = False
+    """Run each Gaussian's position learning rate down the means' decay from the step a training render first saw it
+    to the end of the run (the whole decay squeezed into the steps it had left), instead of from step 0 or the last
+    restart: Gaussians that a late view brings (its triangulated seed points) or first shows can still move, as the
+    first views' did, where the shared schedule has the rate near its floor (at 16500 of 20000 steps, with a
+    restart at 11400, about 1/15 of the start rate). Every Gaussian ends at the final rate. Off: one schedule for
+    all. Gaussians in view from the run's (or a restart's) first pass keep the shared schedule, so with no view
+    added it barely acts."""
 
 
 class HpgsSplatfactoModel(SplatfactoModel):
@@ -184,6 +192,45 @@ class HpgsSplatfactoModel(SplatfactoModel):
         # the SH coefficient k = 1, 2, ... belongs to degree floor(sqrt(k))
         coefficient_degree = torch.arange(1, rest.shape[1] + 1, device=rest.device).sqrt().floor().long()
         return (coefficient_degree[None, :] <= degree[:, None]).to(rest.dtype)
+
+    def tracks_ages(self) -> bool:
+        """Whether an option reads the Gaussians' ages (`SEEN_AT`): training renders then record them."""
+        return bool(self.config.sh_degree_by_age or self.config.means_lr_by_age)
+
+    # ---- position learning rate by a Gaussian's age (means-lr-by-age) ---------------------------------------
+
+    means_before_step: Optional[torch.Tensor] = None
+    """means-lr-by-age: the means as the training render saw them, before the optimizer's step."""
+
+    def means_lr_ratio(self, multiplier) -> torch.Tensor:
+        """[N] each Gaussian's own position learning rate over the shared one at this step, for the means' decay
+        `multiplier` (`hpgs_ns.schedules.DecayMultiplier`, squeezed by its `speed` after a restart). A Gaussian first
+        seen at model step b follows the whole decay from b to the schedule's end; never seen, or seen from step 0:
+        1. Model steps and the scheduler's positions both count from the last restart."""
+        length = max(multiplier.max_steps / max(float(multiplier.speed), 1e-9), 1.0)  # the steps the decay spans now
+        step = float(min(self.step, length))
+        born = (self.seen_at().double() - 1).clamp(min=0.0)  # seen_at is 1 + the step first seen; 0: never
+        own = ((step - born) / (length - born).clamp(min=1.0)).clamp(0.0, 1.0)
+        shared = float(multiplier.at_fraction(torch.tensor([step / length], dtype=torch.float64))[0])
+        ratio = multiplier.at_fraction(own) / shared
+        return torch.where(self.seen_at() > 0, ratio, torch.ones_like(ratio)).to(self.means.dtype)
+
+    @torch.no_grad()
+    def scale_young_means_steps(self) -> bool:
+        """means-lr-by-age, after the optimizer's step and before densification changes the rows: each Gaussian's
+        step on its mean scaled by `means_lr_ratio` (Adam's step is proportional to its learning rate, so this is
+        that Gaussian having its own rate). Returns whether it acted."""
+        before, self.means_before_step = self.means_before_step, None
+        scheduler = getattr(self, "schedulers", {}).get("means")
+        multipliers = getattr(scheduler, "lr_lambdas", ())
+        if before is None or not multipliers or not hasattr(multipliers[0], "at_fraction"):
+            return False
+        means = self.gauss_params["means"]
+        if before.shape != means.shape:
+            return False
+        ratio = self.means_lr_ratio(multipliers[0]).to(means.device)
+        means.data.copy_(before + (means.data - before) * ratio[:, None])
+        return True
 
     @torch.no_grad()
     def mark_seen(self, radii: torch.Tensor) -> None:
@@ -408,8 +455,11 @@ class HpgsSplatfactoModel(SplatfactoModel):
 
     def step_cb(self, optimizers, step: int) -> None:
         super().step_cb(optimizers, step - self.step_offset)
+        self.schedulers = getattr(optimizers, "schedulers", {})  # means-lr-by-age reads the means' decay
 
     def step_post_backward(self, step: int) -> None:
+        if self.config.means_lr_by_age:
+            self.scale_young_means_steps()
         super().step_post_backward(step - self.step_offset)
 
     @torch.no_grad()
@@ -528,8 +578,10 @@ class HpgsSplatfactoModel(SplatfactoModel):
 
         render_mode = "RGB+ED" if (self.config.output_depth_during_training or not self.training) else "RGB"
         render, alpha, self.info = self._rasterize_cameras(camera_to_world, K, W, H, render_mode, crop_ids)
-        if self.training and self.config.sh_degree_by_age:
+        if self.training and self.tracks_ages():
             self.mark_seen(self.info["radii"])
+        if self.training and self.config.means_lr_by_age:
+            self.means_before_step = self.means.detach().clone()
         if self.training:
             self.strategy.step_pre_backward(
                 self.gauss_params, self.optimizers, self.strategy_state, self.step, self.info

@@ -66,6 +66,8 @@ class HpgsPipeline(VanillaPipeline):
             signature["late-view-boost"] = str(self.datamanager.config.late_view_boost)
         if getattr(config.model, "sh_degree_by_age", False):  # Gaussians' ages decide their open SH terms
             signature["sh-degree-by-age"] = "True"
+        if getattr(config.model, "means_lr_by_age", False):  # Gaussians' ages decide their position learning rates
+            signature["means-lr-by-age"] = "True"
         if getattr(self.datamanager.config, "random_points", "cube") != "cube":  # restarts draw the splat's points again
             signature["random-points"] = str(self.datamanager.config.random_points)
         self.datamanager.selection_signature = signature
