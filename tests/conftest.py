@@ -62,6 +62,18 @@ def short_config(scene: Path, out: Path, steps: int = 60, every: int = 20, round
     return cfg
 
 
+def model_trainer(scene: Path, out: Path, steps: int = 12, **model_options):
+    """A set-up trainer of `steps` steps with no rounds and no densification in them (rows stay put), its
+    `--pipeline.model.*` options set by field name: for tests of per-Gaussian model mechanisms."""
+    cfg = short_config(scene, out, steps=steps, rounds=0)
+    cfg.pipeline.model.warmup_length = 1000
+    for key, value in model_options.items():
+        setattr(cfg.pipeline.model, key, value)
+    trainer = cfg.setup(local_rank=0, world_size=1)
+    trainer.setup()
+    return trainer
+
+
 @pytest.fixture(scope="session")
 def light_preference_model(tmp_path_factory) -> Path:
     """A small preference model (alexnet at 64 px, seeded head) for tests of selection mechanics. The shipped

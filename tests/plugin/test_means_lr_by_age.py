@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 import torch
-from conftest import short_config
+from conftest import model_trainer
 from helpers import train_steps
 
 from hpgs_ns.schedules import DecayMultiplier
@@ -62,13 +62,8 @@ def test_after_a_restart_ages_and_the_squeezed_decay_count_from_it():
     assert got[1] == pytest.approx(10.0, rel=1e-6)
 
 
-def trainer_for(scene, out, by_age: bool, steps: int = 12):
-    cfg = short_config(scene, out, steps=steps, rounds=0)
-    cfg.pipeline.model.warmup_length = 1000  # no densification in these few steps: rows stay put
-    cfg.pipeline.model.means_lr_by_age = by_age
-    trainer = cfg.setup(local_rank=0, world_size=1)
-    trainer.setup()
-    return trainer
+def trainer_for(scene, out, by_age: bool):
+    return model_trainer(scene, out, means_lr_by_age=by_age)
 
 
 def test_gaussians_added_late_move_faster_than_under_the_shared_rate(tiny_scene, tmp_path):

@@ -4,18 +4,13 @@ render first saw it (issue #46)."""
 from __future__ import annotations
 
 import torch
-from conftest import short_config
+from conftest import model_trainer
 from helpers import train_steps
 
 
-def trainer_for(scene, out, by_age: bool, steps: int = 12):
-    cfg = short_config(scene, out, steps=steps, rounds=0)
-    cfg.pipeline.model.sh_degree_interval = 2  # degree l opens 2 l steps after a Gaussian is first seen
-    cfg.pipeline.model.warmup_length = 1000  # no densification in these few steps: rows stay put
-    cfg.pipeline.model.sh_degree_by_age = by_age
-    trainer = cfg.setup(local_rank=0, world_size=1)
-    trainer.setup()
-    return trainer
+def trainer_for(scene, out, by_age: bool):
+    # degree l opens 2 l steps after a Gaussian is first seen
+    return model_trainer(scene, out, sh_degree_interval=2, sh_degree_by_age=by_age)
 
 
 def test_the_mask_opens_one_degree_per_interval_of_a_gaussians_age(tiny_scene, tmp_path):
