@@ -221,14 +221,11 @@ class HpgsSplatfactoModel(SplatfactoModel):
         step on its mean scaled by `means_lr_ratio` (Adam's step is proportional to its learning rate, so this is
         that Gaussian having its own rate). Returns whether it acted."""
         before, self.means_before_step = self.means_before_step, None
-        scheduler = getattr(self, "schedulers", {}).get("means")
-        multipliers = getattr(scheduler, "lr_lambdas", ())
-        if before is None or not multipliers or not hasattr(multipliers[0], "at_fraction"):
-            return False
+        decay = self.means_decay()
         means = self.gauss_params["means"]
-        if before.shape != means.shape:
+        if before is None or decay is None or before.shape != means.shape:
             return False
-        ratio = self.means_lr_ratio(multipliers[0]).to(means.device)
+        ratio = self.means_lr_ratio(decay).to(means.device)
         means.data.copy_(before + (means.data - before) * ratio[:, None])
         return True
 
@@ -455,7 +452,18 @@ class HpgsSplatfactoModel(SplatfactoModel):
 
     def step_cb(self, optimizers, step: int) -> None:
         super().step_cb(optimizers, step - self.step_offset)
+        first = not hasattr(self, "schedulers")
         self.schedulers = getattr(optimizers, "schedulers", {})  # means-lr-by-age reads the means' decay
+        if first and self.config.means_lr_by_age and self.means_decay() is None:
+            from nerfstudio.utils.rich_utils import CONSOLE
+
+            CONSOLE.print("[yellow]means-lr-by-age does nothing in this run: the means' learning rate has no hpgs decay "
+                          "schedule (FloatExponentialDecaySchedulerConfig); use `ns-train hpgs`'s optimizers", soft_wrap=True)
+
+    def means_decay(self):
+        """The means' `DecayMultiplier` (means-lr-by-age evaluates it per Gaussian), or None without one."""
+        multipliers = getattr(getattr(self, "schedulers", {}).get("means"), "lr_lambdas", ())
+        return multipliers[0] if multipliers and hasattr(multipliers[0], "at_fraction") else None
 
     def step_post_backward(self, step: int) -> None:
         if self.config.means_lr_by_age:

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 import torch
-from conftest import model_trainer
+from conftest import model_trainer, short_config
 from helpers import train_steps
 
 from hpgs_ns.schedules import DecayMultiplier
@@ -103,3 +103,17 @@ def test_the_option_records_ages_and_is_part_of_the_resume_signature(tiny_scene,
     assert "means-lr-by-age" not in off.pipeline.datamanager.selection_signature
     assert off.pipeline.model.SEEN_AT not in off.pipeline.model.strategy_state  # off: no ages, no snapshots
     assert off.pipeline.model.means_before_step is None
+
+
+def test_without_the_hpgs_decay_the_option_says_at_start_that_it_does_nothing(tiny_scene, tmp_path, capsys):
+    from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
+
+    cfg = short_config(tiny_scene, tmp_path, steps=4, rounds=0)
+    cfg.pipeline.model.means_lr_by_age = True
+    cfg.optimizers["means"]["scheduler"] = ExponentialDecaySchedulerConfig(lr_final=1.6e-6, max_steps=4)  # stock
+    trainer = cfg.setup(local_rank=0, world_size=1)
+    trainer.setup()
+    train_steps(trainer, range(2))
+    out = capsys.readouterr().out
+    assert out.count("means-lr-by-age does nothing in this run") == 1
+    assert trainer.pipeline.model.means_decay() is None
