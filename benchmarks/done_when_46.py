@@ -9,10 +9,11 @@ interval's upper end below +0.6, every selector's mean at most +0.5.
 With `--against BASE` (the trainer a mechanism is judged against, e.g. `benchmarks/results/real12`), also the run
 PSNR FOLDER - BASE paired by (scene, selector, seed), on the pairs whose runs differ (a run copied from BASE, as fox
 in docs/lab/seeded-restarts-judge-plan.md, is left out: the mechanism did not touch it), its bar `--min-run-gain`
-(-0.2 dB), and the mean run wall of each, whose ratio is read against the lease loads (#46's guard: at most +10%).
+(-0.2 dB), and the mean run wall of each, whose ratio is read against the lease loads (#46's guard: at most +10%);
+with `--also-over SCENE ...`, the run PSNR gain again over those scenes alone (a pilot rule's subset).
 
     python benchmarks/done_when_46.py benchmarks/results/real6-seeded-restarts --against benchmarks/results/real12 \
-        [--out FILE.json]
+        [--also-over SCENE ...] [--out FILE.json]
 """
 
 from __future__ import annotations
@@ -32,9 +33,8 @@ MEAN_BAR, UPPER_BAR, SELECTOR_BAR = 0.3, 0.6, 0.5
 
 
 def interval(gains: stats.Gains) -> dict:
-    """Mean over scenes of per-scene means, 95% hierarchical-bootstrap interval, pair count."""
-    est, lo, hi = stats.hierarchical_bootstrap(gains)
-    return {"mean": est, "lo": lo, "hi": hi, "scenes": len(gains), "pairs": sum(len(v) for v in gains.values())}
+    """Mean over scenes of per-scene means, 95% hierarchical-bootstrap interval, sign-flip p, counts."""
+    return stats.across_scenes(gains)
 
 
 def runs_of(folder: Path) -> List[RunResult]:
@@ -54,14 +54,18 @@ def done_when(rows: Sequence[RunResult], final_sets: Sequence[RunResult]) -> dic
     return out
 
 
-def against(rows: Sequence[RunResult], base: Sequence[RunResult], min_gain: float) -> Optional[dict]:
-    """Run PSNR rows - base paired by (scene, selector, seed), runs that differ only; mean walls."""
+def against(rows: Sequence[RunResult], base: Sequence[RunResult], min_gain: float,
+            scenes: Optional[Sequence[str]] = None) -> Optional[dict]:
+    """Run PSNR rows - base paired by (scene, selector, seed), runs that differ only (of `scenes`, if given); mean
+    walls."""
     by_key = {(r.scene, r.selector, r.seed): r for r in base}
     gains: stats.Gains = {}
     walls: Dict[str, List[float]] = {"folder": [], "base": []}
     for r in rows:
         b = by_key.get((r.scene, r.selector, r.seed))
         if b is None or (r.test.psnr == b.test.psnr and r.chosen_views == b.chosen_views):  # a copy of BASE's run
+            continue
+        if scenes is not None and r.scene not in scenes:
             continue
         cell = gains.setdefault(r.scene, {})
         cell[len(cell)] = r.test.psnr - b.test.psnr
@@ -70,7 +74,6 @@ def against(rows: Sequence[RunResult], base: Sequence[RunResult], min_gain: floa
     if not gains:
         return None
     gain = interval(gains)
-    gain["p"] = stats.sign_flip_test(list(stats.scene_means(gains).values()))
     wall = {k: mean(v) for k, v in walls.items()}
     return {"run_gain": gain, "min_run_gain": min_gain, "run_gain_met": bool(gain["mean"] >= min_gain),
             "mean_wall_s": wall, "wall_ratio": wall["folder"] / wall["base"]}
@@ -85,6 +88,8 @@ def main() -> None:
     ap.add_argument("folders", type=Path, nargs="+")
     ap.add_argument("--against", type=Path, help="results folder of the trainer the folders are judged against")
     ap.add_argument("--min-run-gain", type=float, default=-0.2)
+    ap.add_argument("--also-over", nargs="+", metavar="SCENE",
+                    help="with --against, the run PSNR gain again over these scenes alone (a pilot rule's subset)")
     ap.add_argument("--out", type=Path)
     args = ap.parse_args()
     base = runs_of(args.against) if args.against else None
@@ -107,6 +112,13 @@ def main() -> None:
                       f"({g['pairs']} pairs that differ; bar >= {args.min_run_gain:+.2f}: "
                       f"{'met' if vs['run_gain_met'] else 'not met'}); mean wall {vs['mean_wall_s']['folder']:.0f} s "
                       f"against {vs['mean_wall_s']['base']:.0f} s (x{vs['wall_ratio']:.3f}, read with the leases' loads)")
+                if args.also_over:
+                    sub = against(rows, base, args.min_run_gain, scenes=args.also_over)
+                    out["against"]["over_scenes"] = {"scenes": list(args.also_over), **(sub or {})}
+                    if sub:
+                        g = sub["run_gain"]
+                        print(f"  over {' '.join(args.also_over)}: {g['mean']:+.2f} dB [{g['lo']:+.2f}, {g['hi']:+.2f}], "
+                              f"p {g['p']:.3f} ({g['pairs']} pairs)")
             else:
                 print(f"  no run here differs from one in {args.against}")
         report[str(folder)] = out

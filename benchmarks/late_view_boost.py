@@ -47,9 +47,9 @@ def summary(pairs: Dict[Key, float]) -> dict:
     for (scene, _selector, _seed), value in pairs.items():
         # a (selector, seed) pair is one replicate of the scene
         by_scene[scene][len(by_scene[scene])] = value
-    est, lo, hi = stats.hierarchical_bootstrap(by_scene)
-    p = stats.sign_flip_test(list(stats.scene_means(by_scene).values()))
-    return {"mean": round(est, 3), "lo": round(lo, 3), "hi": round(hi, 3), "p": round(p, 4), "pairs": len(pairs)}
+    out = stats.across_scenes(by_scene)
+    return {"mean": round(out["mean"], 3), "lo": round(out["lo"], 3), "hi": round(out["hi"], 3), "p": round(out["p"], 4),
+            "pairs": len(pairs)}
 
 
 def compare(start_dir: Path, baseline: str, arm: str) -> dict:

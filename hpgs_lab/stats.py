@@ -209,6 +209,14 @@ def sign_flip_test(
     return (1 + hits) / (1 + n_perm)
 
 
+def across_scenes(gains: Mapping[str, Mapping[int, float]]) -> Dict[str, float]:
+    """The lab scripts' one-line reading of paired gains: mean over scenes of per-scene means, its 95%
+    hierarchical-bootstrap interval, the sign-flip p over the scene means, and the scene and pair counts."""
+    estimate, lo, hi = hierarchical_bootstrap(gains)
+    return {"mean": estimate, "lo": lo, "hi": hi, "p": sign_flip_test(list(scene_means(gains).values())),
+            "scenes": len(gains), "pairs": sum(len(v) for v in gains.values())}
+
+
 def holm(pvalues: Mapping[str, float]) -> Dict[str, float]:
     """Holm-Bonferroni adjusted p-values: sorted ascending, p_(i) * (m - i + 1), running maximum, capped at 1.
 

@@ -55,3 +55,15 @@ def test_run_gain_pairs_only_runs_that_differ_from_the_base(done_when, tmp_path)
     assert vs["run_gain"]["mean"] == pytest.approx(-0.3) and not vs["run_gain_met"]
     assert vs["wall_ratio"] == pytest.approx(1.05)
     assert done_when.against(done_when.runs_of(arm), base, min_gain=-0.4)["run_gain_met"]
+
+
+def test_run_gain_over_a_subset_of_scenes(done_when, tmp_path):
+    cost = {"random": 0.1}
+    base = done_when.runs_of(folder(tmp_path / "base", cost, run_psnr=20.0))
+    folder(tmp_path / "arm", cost, run_psnr=19.5, scenes=SCENES[:1])  # s1 loses 0.5 dB, s2 and s3 gain 0.4
+    arm = done_when.runs_of(folder(tmp_path / "arm", cost, run_psnr=20.4, scenes=SCENES[1:]))
+    every = done_when.against(arm, base, min_gain=-0.1)["run_gain"]
+    assert every["mean"] == pytest.approx((-0.5 + 0.4 + 0.4) / 3) and every["pairs"] == 6
+    sub = done_when.against(arm, base, min_gain=-0.1, scenes=["s2", "s3"])["run_gain"]
+    assert sub["mean"] == pytest.approx(0.4) and sub["pairs"] == 4 and sub["scenes"] == 2
+    assert sub["p"] == pytest.approx(0.5)  # two scenes, both positive: the sign-flip floor 2 / 2^2
