@@ -209,11 +209,11 @@ class HpgsSplatfactoModel(SplatfactoModel):
         1. Model steps and the scheduler's positions both count from the last restart."""
         length = max(multiplier.max_steps / max(float(multiplier.speed), 1e-9), 1.0)  # the steps the decay spans now
         step = float(min(self.step, length))
-        born = (self.seen_at().double() - 1).clamp(min=0.0)  # seen_at is 1 + the step first seen; 0: never
+        seen = self.seen_at()
+        born = (seen.double() - 1).clamp(min=0.0)  # seen_at is 1 + the step first seen; 0: never
         own = ((step - born) / (length - born).clamp(min=1.0)).clamp(0.0, 1.0)
-        shared = float(multiplier.at_fraction(torch.tensor([step / length], dtype=torch.float64))[0])
-        ratio = multiplier.at_fraction(own) / shared
-        return torch.where(self.seen_at() > 0, ratio, torch.ones_like(ratio)).to(self.means.dtype)
+        ratio = multiplier.at_fraction(own) / multiplier(step)  # the shared rate: the schedule at this position
+        return torch.where(seen > 0, ratio, torch.ones_like(ratio)).to(self.means.dtype)
 
     @torch.no_grad()
     def scale_young_means_steps(self) -> bool:
