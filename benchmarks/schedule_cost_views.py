@@ -21,6 +21,7 @@ round arrived at and where splatfacto's SH degree 1 opens (`--sh-degree-interval
 from __future__ import annotations
 
 import argparse
+import json
 from collections import defaultdict
 from pathlib import Path
 from typing import Dict, List
@@ -48,8 +49,18 @@ def centres(data_root: Path, scene: str, cache: Dict[tuple, dict]) -> Dict[str, 
     key = ("centres", scene)
     if key not in cache:
         cache[key] = {f"images/{im.name}": -im.qvec2rotmat().T @ im.tvec
-                      for im in images(data_root, scene, cache).values()}
+                      for im in images(data_root, scene, cache).values()} or transforms_centres(data_root / scene)
     return cache[key]
+
+
+def transforms_centres(folder: Path) -> Dict[str, np.ndarray]:
+    """{file_path: camera centre} from a nerfstudio capture's transforms.json (camera-to-world: the centre is the
+    translation), for scenes without a COLMAP model (fox); empty when it has neither."""
+    path = folder / "transforms.json"
+    if not path.is_file():
+        return {}
+    frames = json.loads(path.read_text())["frames"]
+    return {f["file_path"]: np.asarray(f["transform_matrix"], dtype=float)[:3, 3] for f in frames}
 
 
 def observed(data_root: Path, scene: str, cache: Dict[tuple, dict]) -> Dict[str, set]:
@@ -132,6 +143,11 @@ def arm_report(root: Path, start: str, arm: str, other: str, data_root: Path, ca
     for r in rows:
         cost[r["group"]].append(r["final_set"] - r["run"])
     entry = {"cost_by_group": means({g: cost[g] for g, _, _ in GROUPS})}
+    per_selector: Dict[str, Dict[str, List[float]]] = defaultdict(lambda: defaultdict(list))
+    for r in rows:
+        per_selector[r["selector"]][r["group"]].append(r["final_set"] - r["run"])
+    entry["cost_by_group_by_selector"] = {sel: means({g: groups[g] for g, _, _ in GROUPS})
+                                          for sel, groups in per_selector.items()}
     if other and (root / start / other).is_dir():
         twins = {(r["scene"], r["selector"], r["seed"], r["view"]): r
                  for r in view_rows(root, start, other, data_root, cache)}

@@ -400,6 +400,9 @@ def check_resume_matches(pipeline) -> None:
         diff = "; ".join(f"{key}: checkpoint {saved.get(key, '(unset)')}, now {now.get(key, '(unset)')}" for key in changed)
         hint = (" (--pipeline.datamanager.seed-points as it was trained: the default was colmap before auto)"
                 if "seed-points" in changed else "")
+        if "selector" in changed and saved.get("selector"):
+            hint += (f" (--pipeline.selection.selector {saved['selector']}"
+                     + (": the default was hpgs before farthest" if saved["selector"] == "hpgs" else "") + ")")
         if SEEDED_RESTARTS in changed and saved.get(SEEDED_RESTARTS) == "False":
             hint += " (--pipeline.selection.after-add.restart-seeded-starts False: seeded starts did not restart before)"
         raise CheckpointError(f"this resume changes what the checkpoint was trained with ({diff}); resume with the "

@@ -8,7 +8,8 @@ and spreads are for reading. Where runs have final-set references (`hpgs bench -
 results page also show each run's schedule cost (`schedule`), and `power.md` how likely the comparisons were to
 find a gain of 0.5 or 1 dB (`bench.power`); `hpgs_paper.md` puts protocol-`hpgs` runs beside the HP-GS paper's
 table (`paper_table`); `missing.md` names what the folder's grid lacks (`missing`); with both rankings, `paired.md`
-ends with the default-selector rule applied to them (`default_rule`).
+ends with the default-selector rule applied to them (`default_rule`); `cost_by_round.md` renders where the schedule
+cost lands, from the lab's `cost_by_round.json` (`cost_by_round`).
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from pathlib import Path
 from typing import Dict, List, Optional
 
 from hpgs_lab.power import power_section
+from hpgs_lab.report.cost_by_round import cost_by_round_section
 from hpgs_lab.report.default_rule import default_rule_section
 from hpgs_lab.report.missing import missing_section
 from hpgs_lab.report.paired import comparable, comparison_plan, paired_report, planned_comparisons, verdict_sentence
@@ -37,6 +39,7 @@ from hpgs_ns.atomic_write import write_text_atomic
 
 DEFAULT_RESULTS_PAGE = Path("docs/results.md")
 SCHEDULE_TITLE = "**Schedule cost (final-set − run)**"
+COST_BY_ROUND_TITLE = "**Schedule cost by when the nearest training view arrived**"
 VIEWS_ALONE_TITLE = "### By their views alone (final-sets)"
 DEFAULT_RULE_TITLE = "### The default of `ns-train hpgs`"
 
@@ -62,6 +65,7 @@ def write_report(out: Path, results_page: Optional[Path] = None) -> List[Path]:
     sections = {"table.md": table, "paired.md": paired, "missing.md": missing_section(rows, final_sets),
                 "work.md": work_table(rows),
                 "noise.md": noise_table(rows), "throughput.md": throughput_table(rows), "stress.md": stress_table(rows),
+                "cost_by_round.md": cost_by_round_section(out),
                 "power.md": power_section(comparable(rows), planned=planned_comparisons(rows)), "hpgs_paper.md": hpgs_paper_table(rows)}
     for name, text in sections.items():
         if text:
@@ -86,6 +90,8 @@ def results_section(out: Path, sections: Dict[str, str]) -> str:
         parts += ["**Runs not in the folder**", "", sections["missing.md"], ""]
     if sections.get("schedule"):  # `schedule.schedule_cost_table`, where runs have final-set references
         parts += [SCHEDULE_TITLE, "", sections["schedule"]]
+    if sections.get("cost_by_round.md"):
+        parts += [COST_BY_ROUND_TITLE, "", sections["cost_by_round.md"]]
     if sections.get("hpgs_paper.md"):
         parts += ["**HP-GS's table (protocol `hpgs`), beside the paper's**", "", sections["hpgs_paper.md"]]
     for name, title in (("noise.md", "Repeat noise against seed spread"), ("throughput.md", "Throughput")):

@@ -11,7 +11,7 @@ from hpgs_lab import stats
 from hpgs_lab.report.paired import comparable, protocol_comparisons
 from hpgs_lab.results import RunResult
 
-DEFAULT_SELECTOR = "hpgs"
+INCUMBENT = "hpgs"  # the default when the rule was written; the rule keeps naming it so the page reads as fixed
 
 
 def gains_over(comparisons: Sequence[stats.Comparison], default: str) -> Dict[str, dict]:
@@ -33,14 +33,14 @@ def rule_gains(rows: Sequence[RunResult], protocol: str, default: str) -> Dict[s
     return gains_over(protocol_comparisons(group, protocol), default)
 
 
-def default_choice(runs: Dict[str, dict], final_sets: Dict[str, dict], default: str = DEFAULT_SELECTOR) -> str:
+def default_choice(runs: Dict[str, dict], final_sets: Dict[str, dict], default: str = INCUMBENT) -> str:
     """The selector the rule names: `default` unless others beat it on both rankings, then the largest run gain."""
     both = [s for s in runs if runs[s]["beats"] and final_sets.get(s, {}).get("beats")]
     return max(both, key=lambda s: runs[s]["estimate"]) if both else default
 
 
 def default_rule_section(rows: Sequence[RunResult], final_rows: Sequence[RunResult], protocol: str = "fisherrf",
-                         default: str = DEFAULT_SELECTOR) -> Optional[str]:
+                         default: str = INCUMBENT) -> Optional[str]:
     """The rule applied to a results folder's runs and final-sets of one protocol, as markdown (None without both)."""
     runs = rule_gains(rows, protocol, default)
     final_sets = rule_gains(final_rows, protocol, default)

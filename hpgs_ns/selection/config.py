@@ -35,8 +35,9 @@ class SelectionLoopConfig(InstantiateConfig):
 
     _target: Type = field(default_factory=_rounds)
     selector: SelectorName = DEFAULT_SELECTOR
-    """Which selector picks the next views (default: the paper's human-preference selector). Other packages add
-    selectors through the `hpgs_ns.selectors` entry point group."""
+    """Which selector picks the next views (default: `farthest`, which beat the paper's human-preference selector `hpgs`
+    on the twelve-scene benchmark, docs/results.md). Other packages add selectors through the `hpgs_ns.selectors`
+    entry point group."""
     select_every: int = 2000
     """A selection round runs at steps select_every, 2*select_every, ... (never at step 0)."""
     select_at: Tuple[int, ...] = ()

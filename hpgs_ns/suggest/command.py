@@ -43,7 +43,7 @@ class Suggest:
     num: int = 5
     """How many poses to suggest (greedy: each pick counts as taken for the next)."""
     selector: Optional[str] = None
-    """The selector that scores them (default: the run's own, `hpgs` for a splatfacto run)."""
+    """The selector that scores them (default: the run's own, `ns-train hpgs`'s default, `farthest`, for a splatfacto run)."""
     candidates: str = "orbit"
     """`orbit` (rings at the captured cameras' heights and radii, looking at the centre), `sphere` (a Fibonacci
     sphere at their distance), or a JSON file (a nerfstudio camera path, or a list of camera-to-world matrices)."""

@@ -1,5 +1,5 @@
-"""docs/results.md is what `hpgs bench --report-only` makes of the committed runs, and the README's verdict lines
-quote it."""
+"""docs/results.md is what `hpgs bench --report-only` makes of the committed twelve-scene matrix (issue #47), the
+folder's own report pages match it, and the README's verdict lines quote it."""
 
 from __future__ import annotations
 
@@ -10,20 +10,23 @@ from pathlib import Path
 from hpgs_lab.report import write_report
 
 REPO = Path(__file__).resolve().parents[2]
-SUITE = Path("benchmarks/results/suite")
+REAL12 = Path("benchmarks/results/real12")
 
 
 def test_the_results_page_regenerates_exactly_from_the_committed_runs(tmp_path, monkeypatch):
-    shutil.copytree(REPO / SUITE, tmp_path / SUITE, ignore=shutil.ignore_patterns("*.png", "*.jpg", "_*"))
+    shutil.copytree(REPO / REAL12, tmp_path / REAL12, ignore=shutil.ignore_patterns("*.png", "*.jpg", "_*", "*.md"))
     monkeypatch.chdir(tmp_path)  # the page names the folder as the command was given it
-    write_report(SUITE, results_page=tmp_path / "results.md")
+    write_report(REAL12, results_page=tmp_path / "results.md")
     assert (tmp_path / "results.md").read_text() == (REPO / "docs" / "results.md").read_text(), (
-        "docs/results.md is stale: hpgs bench --out benchmarks/results/suite --report-only --results-page docs/results.md")
+        "docs/results.md is stale: hpgs bench --out benchmarks/results/real12 --report-only --results-page docs/results.md")
+    for name in sorted(p.name for p in (REPO / REAL12).glob("*.md") if p.name != "README.md"):
+        assert (REAL12 / name).read_text() == (REPO / REAL12 / name).read_text(), (
+            f"{REAL12 / name} is stale: hpgs bench --out {REAL12} --report-only")
 
 
 def test_every_interval_in_the_readme_verdict_is_on_the_results_page():
     readme = (REPO / "README.md").read_text()
-    verdict = readme[readme.index("Which one to use, from the six-scene suite"):readme.index("So if you pick one")]
+    verdict = readme[readme.index("Which one to use, from the twelve-scene matrix"):readme.index("So `ns-train hpgs` picks")]
     page = (REPO / "docs" / "results.md").read_text()
     number = r"([+\-−]\d+\.\d+)"
     quoted = re.findall(number + r"(?: dB)? \[" + number + ", " + number + r"\]", verdict)
@@ -31,16 +34,3 @@ def test_every_interval_in_the_readme_verdict_is_on_the_results_page():
     for gain, lo, hi in quoted:
         gain, lo, hi = (x.replace("−", "-") for x in (gain, lo, hi))
         assert f"| {gain} | [{lo}, {hi}] |" in page, f"README quotes {gain} [{lo}, {hi}], not on docs/results.md"
-
-
-def test_the_real12_report_regenerates_exactly_from_its_committed_runs(tmp_path, monkeypatch):
-    # issue #47's matrix: every wave merged into benchmarks/results/real12 must leave its report current
-    real12 = Path("benchmarks/results/real12")
-    shutil.copytree(REPO / real12, tmp_path / real12, ignore=shutil.ignore_patterns("*.png", "*.jpg", "_*", "*.md"))
-    monkeypatch.chdir(tmp_path)
-    write_report(real12)
-    pages = sorted(p.name for p in (REPO / real12).glob("*.md") if p.name != "README.md")
-    assert {"table.md", "paired.md", "hpgs_paper.md"} <= set(pages)
-    for name in pages:
-        assert (real12 / name).read_text() == (REPO / real12 / name).read_text(), (
-            f"{real12 / name} is stale: hpgs bench --out {real12} --report-only")

@@ -76,7 +76,7 @@ def photometric_error(trainer) -> float:
 def test_rounds_happen_on_schedule_and_log(trained):
     log = json.loads((trained["run_dir"] / "selected_views.json").read_text())
     assert [r["step"] for r in log["rounds"]] == [20, 40]
-    assert log["selector"] == "hpgs"  # `ns-train hpgs` picks with the paper's selector unless told otherwise
+    assert log["selector"] == "farthest"  # `ns-train hpgs` picks with `farthest` unless told otherwise
     assert len(log["initial"]) == 6 and len(log["active"]) == 8
     chosen = [name for r in log["rounds"] for name in r["chosen"]]
     assert set(chosen).isdisjoint(log["initial"]) and set(log["active"]) == set(log["initial"]) | set(chosen)
@@ -171,3 +171,16 @@ def test_stock_ns_eval_and_ns_viewer_open_the_checkpoint(trained, tmp_path):
     assert final["num_gaussians"] == trained["trainer"].pipeline.model.num_points
 
     stock_ns_viewer_page(config, env)
+
+
+def test_the_papers_selector_picks_the_view_it_scores_farthest_from_the_training_set(tiny_scene, tmp_path):
+    # `farthest` is the default now; the paper's `hpgs` still runs its rounds inside training (renders, preference
+    # features, cosine distances) when named
+    run_training(short_config(tiny_scene, tmp_path, steps=24, every=10, rounds=2, selector="hpgs"))
+    log = json.loads(next(tmp_path.rglob("selected_views.json")).read_text())
+    assert log["selector"] == "hpgs" and [r["step"] for r in log["rounds"]] == [10, 20]
+    for k, r in enumerate(log["rounds"]):
+        scores = r["scores"]
+        assert len(scores) == 35 - 6 - k and all(0.0 <= s <= 2.0 for s in scores.values())  # cosine distances
+        assert r["chosen"] == [max(scores, key=scores.get)]
+        assert len(set(scores.values())) > 1  # distinct features, not a tie broken by order

@@ -240,5 +240,5 @@ def test_ns_train_says_one_line_for_its_config_instead_of_dumping_it(tiny_scene,
     cfg.data = cfg.pipeline.datamanager.data = tiny_scene
     cfg.print_to_terminal()
     out = " ".join(capsys.readouterr().out.split())
-    assert out.startswith("hpgs: selector hpgs, 100 steps, data ") and out.endswith("config.yml")
+    assert out.startswith("hpgs: selector farthest, 100 steps, data ") and out.endswith("config.yml")
     assert str(tiny_scene) in out.replace(" ", "") or str(tiny_scene) in out

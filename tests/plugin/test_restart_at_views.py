@@ -216,3 +216,15 @@ def test_a_checkpoint_from_before_seeded_restarts_were_the_default_resumes_as_it
     random_now = {**base, "seed-points": "colmap", "after-add": "off"}
     resume({**base, "after-add": "off"}, random_now)
     resume({**base, "after-add": "restart-seeded-starts True"}, random_now)
+
+
+def test_a_checkpoint_of_the_old_default_selector_names_the_flag_that_resumes_it():
+    from hpgs_ns.trainer import CheckpointError
+
+    base = {"seed": "0", "seed-points": "colmap", "after-add": "off", "after-add.restart-seeded-starts": "True"}
+    with pytest.raises(CheckpointError, match=r"selector: checkpoint hpgs, now farthest.*"
+                                              r"--pipeline.selection.selector hpgs: the default was hpgs before farthest"):
+        resume({**base, "selector": "hpgs", "hpgs.model": "shipped"}, {**base, "selector": "farthest"})
+    with pytest.raises(CheckpointError, match=r"\(--pipeline.selection.selector fisher\)"):
+        resume({**base, "selector": "fisher"}, {**base, "selector": "farthest"})
+    resume({**base, "selector": "hpgs"}, {**base, "selector": "hpgs"})

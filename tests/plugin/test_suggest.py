@@ -109,7 +109,7 @@ def test_a_stock_splatfacto_run_loads_into_the_plugins_model(run_config, tmp_pat
     config.method_name = "splatfacto"
     (folder / "config.yml").write_text(yaml.dump(config))
     stock = load_run(folder / "config.yml")
-    assert type(stock.pipeline.model).__name__ == "HpgsSplatfactoModel" and stock.selector == "hpgs"
+    assert type(stock.pipeline.model).__name__ == "HpgsSplatfactoModel" and stock.selector == "farthest"  # ns-train hpgs's default
     assert stock.trained == list(range(35))  # a splatfacto run trained on every training view
     out = suggest(stock, Suggest(folder / "config.yml", num=2, selector="farthest", candidates="sphere", count=32))
     assert out["trained_views"] == 35 and out["num"] == 2
