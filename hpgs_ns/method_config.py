@@ -74,5 +74,5 @@ def hpgs_trainer_config(max_steps: int = TOTAL_STEPS) -> HpgsTrainerConfig:
 
 hpgs = MethodSpecification(
     config=hpgs_trainer_config(),
-    description="HP-GS: splatfacto with next-best-view selection (human-preference, FisherRF, farthest, random)",
+    description="HP-GS: splatfacto with next-best-view selection (farthest by default; human-preference, FisherRF, random, ...)",
 )
