@@ -88,6 +88,9 @@ def results_section(out: Path, sections: Dict[str, str]) -> str:
         parts += ["**Power**", "", sections["power.md"]]
     if sections.get("missing.md"):
         parts += ["**Runs not in the folder**", "", sections["missing.md"], ""]
+    elif sections["paired.md"]:
+        parts += ["**Runs not in the folder**: none (every selector ran on every scene at each seed run there, and, in "
+                  "a protocol with final-sets, every run has its own).", ""]
     if sections.get("schedule"):  # `schedule.schedule_cost_table`, where runs have final-set references
         parts += [SCHEDULE_TITLE, "", sections["schedule"]]
     if sections.get("cost_by_round.md"):

@@ -19,6 +19,7 @@ def test_the_results_page_regenerates_exactly_from_the_committed_runs(tmp_path, 
     write_report(REAL12, results_page=tmp_path / "results.md")
     assert (tmp_path / "results.md").read_text() == (REPO / "docs" / "results.md").read_text(), (
         "docs/results.md is stale: hpgs bench --out benchmarks/results/real12 --report-only --results-page docs/results.md")
+    assert "**Runs not in the folder**: none" in (tmp_path / "results.md").read_text()  # the matrix is whole
     for name in sorted(p.name for p in (REPO / REAL12).glob("*.md") if p.name != "README.md"):
         assert (REAL12 / name).read_text() == (REPO / REAL12 / name).read_text(), (
             f"{REAL12 / name} is stale: hpgs bench --out {REAL12} --report-only")
