@@ -421,11 +421,13 @@ def test_the_page_lists_the_runs_and_final_sets_the_grid_lacks(tmp_path):
                 **views).to_json(out / "s5" / restored.protocol / "farthest" / "final-set" / "seed1.json")
     make_result("s2", "fisherrf", "final-set", 0, 21.0, final_set_of=SourceRun("random", 0, 0, ["v0", "v1"]),
                 **views).to_json(out / "s2" / "fisherrf" / "random" / "final-set" / "seed0.json")
-    assert "Runs not in the folder" not in write_report_page(out, page)
+    text = write_report_page(out, page)
+    assert "**Runs not in the folder**: none" in text and "runs missing" not in text and "final-set missing" not in text
     assert not (out / "missing.md").exists()
-    # nothing missing: no section
+    # nothing missing: the page says so in one line
     write_rows(tmp_path / "full", rows({"farthest": 0.5}, scenes=TWELVE, seeds=(0,)))
-    assert "Runs not in the folder" not in write_report_page(tmp_path / "full", tmp_path / "full.md")
+    text = write_report_page(tmp_path / "full", tmp_path / "full.md")
+    assert "**Runs not in the folder**: none" in text and "missing:" not in text
 
 
 def write_report_page(out, page):

@@ -16,10 +16,12 @@ REAL12 = Path("benchmarks/results/real12")
 def test_the_results_page_regenerates_exactly_from_the_committed_runs(tmp_path, monkeypatch):
     shutil.copytree(REPO / REAL12, tmp_path / REAL12, ignore=shutil.ignore_patterns("*.png", "*.jpg", "_*", "*.md"))
     monkeypatch.chdir(tmp_path)  # the page names the folder as the command was given it
-    write_report(REAL12, results_page=tmp_path / "results.md")
-    assert (tmp_path / "results.md").read_text() == (REPO / "docs" / "results.md").read_text(), (
+    write_report(REAL12, results_page=tmp_path / "docs" / "results.md")
+    page = (tmp_path / "docs" / "results.md").read_text()
+    assert page == (REPO / "docs" / "results.md").read_text(), (
         "docs/results.md is stale: hpgs bench --out benchmarks/results/real12 --report-only --results-page docs/results.md")
-    assert "**Runs not in the folder**: none" in (tmp_path / "results.md").read_text()  # the matrix is whole
+    assert "**Runs not in the folder**: none" in page  # the matrix is whole
+    assert "](../benchmarks/results/real12/fisherrf-paired-gains.png)" in page  # the figure, linked from docs/
     for name in sorted(p.name for p in (REPO / REAL12).glob("*.md") if p.name != "README.md"):
         assert (REAL12 / name).read_text() == (REPO / REAL12 / name).read_text(), (
             f"{REAL12 / name} is stale: hpgs bench --out {REAL12} --report-only")
