@@ -83,27 +83,35 @@ def write_report(out: Path, results_page: Optional[Path] = None) -> List[Path]:
 
 def results_section(out: Path, sections: Dict[str, str]) -> str:
     """The comparisons, their power, the schedule cost (with final-set references), repeat noise and throughput of
-    a results folder, as markdown."""
+    a results folder, as markdown with a level-2 heading per part (paired.md's protocol headings become level 3)."""
     parts = [f"Built by `hpgs bench --out {out.as_posix()} --report-only`; every comparison pairs runs by scene and seed.", ""]
     if sections["paired.md"]:
-        parts += [sections["paired.md"]]
+        paired = ("\n" + sections["paired.md"]).replace("\n#### ", "\n### ").lstrip("\n")
+        paired = paired.replace(VIEWS_ALONE_TITLE, "## By their views alone (final-sets)")
+        paired = paired.replace(DEFAULT_RULE_TITLE, "## The default of `ns-train hpgs`")
+        parts += ["## By the runs (views added during training)", "", paired]
     if sections.get("power.md"):
-        parts += ["**Power**", "", sections["power.md"]]
+        parts += ["## Power", "", sections["power.md"]]
     if sections.get("missing.md"):
-        parts += ["**Runs not in the folder**", "", sections["missing.md"], ""]
+        parts += ["## Runs not in the folder", "", sections["missing.md"], ""]
     elif sections["paired.md"]:
-        parts += ["**Runs not in the folder**: none (every selector ran on every scene at each seed run there, and, in "
-                  "a protocol with final-sets, every run has its own).", ""]
+        parts += ["## Runs not in the folder", "", "None: every selector ran on every scene at each seed run there, and, in "
+                  "a protocol with final-sets, every run has its own.", ""]
     if sections.get("schedule"):  # `schedule.schedule_cost_table`, where runs have final-set references
-        parts += [SCHEDULE_TITLE, "", sections["schedule"]]
+        parts += [heading(SCHEDULE_TITLE), "", sections["schedule"]]
     if sections.get("cost_by_round.md"):
-        parts += [COST_BY_ROUND_TITLE, "", sections["cost_by_round.md"]]
+        parts += [heading(COST_BY_ROUND_TITLE), "", sections["cost_by_round.md"]]
     if sections.get("hpgs_paper.md"):
-        parts += ["**HP-GS's table (protocol `hpgs`), beside the paper's**", "", sections["hpgs_paper.md"]]
+        parts += ["## HP-GS's table (protocol `hpgs`), beside the paper's", "", sections["hpgs_paper.md"]]
     for name, title in (("noise.md", "Repeat noise against seed spread"), ("throughput.md", "Throughput")):
         if sections[name]:
-            parts += [f"**{title}**", "", sections[name]]
+            parts += [f"## {title}", "", sections[name]]
     return "\n".join(parts)
+
+
+def heading(bold_title: str) -> str:
+    """A folder page's bold title (`**...**`) as a level-2 heading of the results page."""
+    return "## " + bold_title.strip("*")
 
 
 def results_page_text(out: Path, sections: Dict[str, str], figures: Sequence[Path] = (),

@@ -363,7 +363,10 @@ def test_report_only_writes_the_results_page(tmp_path):
     assert text.startswith("# Benchmark results: which selector?\n") and page in written
     assert f"Built by `hpgs bench --out {out.as_posix()} --report-only`" in text
     assert "`farthest` beats `random` (`farthest` - `random` +0.70 dB, 95% CI [+0.70, +0.70], 12 scenes" in text
-    assert (out / "paired.md").read_text() in text and (out / "fisherrf-paired-gains.png") in written
+    # paired.md's body, under the page's own headings (its protocol headings one level up), and its figure linked
+    body = (out / "paired.md").read_text().split("\n", 1)[1]
+    assert "## By the runs (views added during training)\n\n### fisherrf protocol\n" + body in text
+    assert (out / "fisherrf-paired-gains.png") in written and "](../suite/fisherrf-paired-gains.png)" in text
     assert "Throughput" not in text  # these runs recorded no start times
 
 
@@ -406,7 +409,7 @@ def test_the_page_lists_the_runs_and_final_sets_the_grid_lacks(tmp_path):
     page = tmp_path / "results.md"
     write_report(out, results_page=page)
     text = page.read_text()
-    assert "**Runs not in the folder**" in text
+    assert "## Runs not in the folder" in text
     assert "- fisherrf protocol, 2 runs missing: s3/hpgs/seed2, s5/farthest/seed1." in text
     assert "- fisherrf protocol, 1 final-set missing: s2/random/seed0." in text
     assert "s3/hpgs/seed2" in (out / "missing.md").read_text()
@@ -422,12 +425,12 @@ def test_the_page_lists_the_runs_and_final_sets_the_grid_lacks(tmp_path):
     make_result("s2", "fisherrf", "final-set", 0, 21.0, final_set_of=SourceRun("random", 0, 0, ["v0", "v1"]),
                 **views).to_json(out / "s2" / "fisherrf" / "random" / "final-set" / "seed0.json")
     text = write_report_page(out, page)
-    assert "**Runs not in the folder**: none" in text and "runs missing" not in text and "final-set missing" not in text
+    assert "## Runs not in the folder\n\nNone:" in text and "runs missing" not in text and "final-set missing" not in text
     assert not (out / "missing.md").exists()
     # nothing missing: the page says so in one line
     write_rows(tmp_path / "full", rows({"farthest": 0.5}, scenes=TWELVE, seeds=(0,)))
     text = write_report_page(tmp_path / "full", tmp_path / "full.md")
-    assert "**Runs not in the folder**: none" in text and "missing:" not in text
+    assert "## Runs not in the folder\n\nNone:" in text and "missing:" not in text
 
 
 def write_report_page(out, page):

@@ -148,7 +148,7 @@ def test_the_power_section_and_the_results_page(tmp_path):
     written = write_report(out, results_page=page)
     assert out / "power.md" in written
     text = page.read_text()
-    assert "**Power**" in text and (out / "power.md").read_text() in text
+    assert "## Power" in text and (out / "power.md").read_text() in text
     assert "| fisherrf | 3 | 6 | 36 |" in text and "(36 paired runs)" in text  # every paired run had its views
     # two planned comparisons (a and b against random): p < 0.025, which 6 scenes (smallest p 2/64) never reach
     assert "| fisherrf | 2 | 6 x 2 | +1.0 dB | 0% | 0% |" in text
