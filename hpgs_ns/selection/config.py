@@ -12,7 +12,7 @@ from __future__ import annotations
 import math
 from dataclasses import MISSING, dataclass, field, fields, make_dataclass
 from pathlib import Path
-from typing import Dict, Optional, Tuple, Type
+from typing import Dict, List, Optional, Tuple, Type
 
 from nerfstudio.configs.base_config import InstantiateConfig
 
@@ -100,6 +100,22 @@ class SelectionLoopConfig(InstantiateConfig):
         name = self.selector if name is None else name
         own = getattr(self, option_group(name), None)
         return own if isinstance(own, SelectorConfig) else registry.selector_config(name)
+
+    def idle_selector_options(self) -> List[str]:
+        """The flags set away from their defaults on selectors this run does not use (e.g. `hpgs.model` while the
+        selector is `farthest`): they change nothing, which the run says at start. The candidate log reads every
+        selector's options, so with it none is idle."""
+        if self.log_candidate_scores:
+            return []
+        idle = []
+        for name in selector_names():
+            group = getattr(self, option_group(name), None)
+            if name == self.selector or not isinstance(group, SelectorConfig):
+                continue
+            default = registry.selector_config(name)
+            idle += [f"--pipeline.selection.{name}.{f.name.replace('_', '-')}" for f in fields(group)
+                     if not f.name.startswith("_") and getattr(group, f.name) != getattr(default, f.name, None)]
+        return idle
 
     def resume_signature(self, seed: int) -> Dict[str, str]:
         """What a resumed run must keep from its checkpoint ({option: value as text}): the selector, its options,

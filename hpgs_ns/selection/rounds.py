@@ -159,6 +159,13 @@ class SelectionRounds:
                     what = f"only {total} of {self.config.max_rounds} selection rounds will run"
                     what += f" ({ran} before the checkpoint, {count} from step {first})" if ran else ""
                 CONSOLE.print(f"[yellow]{what}: {why}", soft_wrap=True)
+        idle = self.config.idle_selector_options()
+        if idle:  # options of a selector this run does not use
+            owners = sorted({flag.split(".")[2] for flag in idle})
+            fix = (f"add --pipeline.selection.selector {owners[0]}" if len(owners) == 1 else
+                   f"--pipeline.selection.selector picks one of {', '.join(owners)}")
+            CONSOLE.print(f"[yellow]{', '.join(idle)} {'does' if len(idle) == 1 else 'do'} nothing in this run: the "
+                          f"selector is {self.config.selector} ({fix})", soft_wrap=True)
         dm = self.datamanager
         active_mode = getattr(dm, "seed_points_mode", None) == "active"
         restart_counts: Tuple[int, ...] = ()

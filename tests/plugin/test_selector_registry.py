@@ -146,3 +146,21 @@ def test_a_run_without_rounds_never_builds_its_selector(monkeypatch):
     SelectionConfig(selector="hpgs", max_rounds=0).setup(datamanager=datamanager, model=None)
     with pytest.raises(AssertionError, match="the preference model was loaded"):
         SelectionConfig(selector="hpgs", max_rounds=1).setup(datamanager=datamanager, model=None)
+
+
+def test_options_of_a_selector_the_run_does_not_use_say_at_start_that_they_do_nothing(tiny_scene, tmp_path, capsys):
+    # the default is `farthest`: a preference model given without `--pipeline.selection.selector hpgs` would be
+    # silently ignored
+    parsed = parse_pipeline(["--selection.hpgs.model", "kitchen.pt", "--selection.fisher.probes", "3"])
+    assert parsed.selection.idle_selector_options() == ["--pipeline.selection.fisher.probes",
+                                                        "--pipeline.selection.hpgs.model"]
+    assert parse_pipeline(["--selection.selector", "hpgs", "--selection.hpgs.model", "kitchen.pt"]
+                          ).selection.idle_selector_options() == []
+    assert parse_pipeline(["--selection.hpgs.model", "kitchen.pt", "--selection.log-candidate-scores"]
+                          ).selection.idle_selector_options() == []  # the candidate log scores with every selector
+    cfg = short_config(tiny_scene, tmp_path, steps=2, rounds=0)
+    cfg.pipeline.selection.hpgs.model = tmp_path / "kitchen.pt"
+    run_training(cfg)
+    out = " ".join(capsys.readouterr().out.split())
+    assert ("--pipeline.selection.hpgs.model does nothing in this run: the selector is farthest "
+            "(add --pipeline.selection.selector hpgs)") in out
