@@ -28,12 +28,12 @@ from typing import Dict, List
 
 import numpy as np
 
+from hpgs_lab.report.cost_by_round import GROUPS
 from hpgs_lab.report.schedule import schedule_pairs
 from hpgs_lab.results import load_final_sets, load_results
 from hpgs_ns.atomic_write import write_json_atomic
 from hpgs_ns.scenes.colmap_model import read_images, read_points3D
 
-GROUPS = (("initial", 0, 0), ("rounds 1-8", 1, 8), ("rounds 9-12", 9, 12), ("rounds 13-16", 13, 16))
 
 
 def images(data_root: Path, scene: str, cache: Dict[tuple, dict]) -> dict:
@@ -140,12 +140,11 @@ def arm_report(root: Path, start: str, arm: str, other: str, data_root: Path, ca
     """One start's and arm's cost per group, per round and by geometry (and `other`'s run PSNR minus this arm's)."""
     rows = view_rows(root, start, arm, data_root, cache)
     cost: Dict[str, List[float]] = defaultdict(list)
-    for r in rows:
-        cost[r["group"]].append(r["final_set"] - r["run"])
-    entry = {"cost_by_group": means({g: cost[g] for g, _, _ in GROUPS})}
     per_selector: Dict[str, Dict[str, List[float]]] = defaultdict(lambda: defaultdict(list))
     for r in rows:
+        cost[r["group"]].append(r["final_set"] - r["run"])
         per_selector[r["selector"]][r["group"]].append(r["final_set"] - r["run"])
+    entry = {"cost_by_group": means({g: cost[g] for g, _, _ in GROUPS})}
     entry["cost_by_group_by_selector"] = {sel: means({g: groups[g] for g, _, _ in GROUPS})
                                           for sel, groups in per_selector.items()}
     if other and (root / start / other).is_dir():

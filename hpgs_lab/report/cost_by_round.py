@@ -13,7 +13,8 @@ from pathlib import Path
 from typing import List
 
 FILE = "cost_by_round.json"
-GROUPS = ("initial", "rounds 1-8", "rounds 9-12", "rounds 13-16")
+# (name, first round, last round) of the nearest training view: the file's groups, as the lab script writes them
+GROUPS = (("initial", 0, 0), ("rounds 1-8", 1, 8), ("rounds 9-12", 9, 12), ("rounds 13-16", 13, 16))
 
 
 def cost_by_round_section(out: Path) -> str:
@@ -29,10 +30,11 @@ def cost_by_round_section(out: Path) -> str:
         f"final-set (views in brackets); from `{FILE}` (`benchmarks/schedule_cost_views.py`, which reads the "
         "captures' poses).", ""]
     for start, entry in sorted(report.items()):
-        lines += [f"| start | selector | {' | '.join(GROUPS)} |", "|---|---|" + "---|" * len(GROUPS)]
+        names = [name for name, _, _ in GROUPS]
+        lines += [f"| start | selector | {' | '.join(names)} |", "|---|---|" + "---|" * len(names)]
         rows = sorted(entry.get("cost_by_group_by_selector", {}).items()) + [("all selectors", entry["cost_by_group"])]
         for selector, groups in rows:
-            cells = [f"{groups[g]['mean']:+.2f} ({groups[g]['views']})" if g in groups else "–" for g in GROUPS]
+            cells = [f"{groups[g]['mean']:+.2f} ({groups[g]['views']})" if g in groups else "–" for g in names]
             lines.append(f"| {start} | {selector} | {' | '.join(cells)} |")
         lines.append("")
     return "\n".join(lines)
