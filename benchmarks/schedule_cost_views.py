@@ -35,7 +35,6 @@ from hpgs_ns.atomic_write import write_json_atomic
 from hpgs_ns.scenes.colmap_model import read_images, read_points3D
 
 
-
 def images(data_root: Path, scene: str, cache: Dict[tuple, dict]) -> dict:
     """The scene's COLMAP images (read once per scene)."""
     key = ("images", scene)
