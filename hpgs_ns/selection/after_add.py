@@ -87,16 +87,23 @@ class AfterAddConfig:
     on the tuning scenes it scattered the splat into fragments (docs/active-training.md). Not with
     reset-after-add (which always returns to the step-0 Gaussians)."""
 
+    error_points: int = 0
+    """After each add that is not a restart, for each view it added: render the splat from the view and add this
+    many Gaussians on the rays of the pixels the render gets most wrong (drawn in proportion to their error above
+    the view's median), in the photo's colours, at the render's depth where it is opaque and at a drawn distance
+    where it is not (`hpgs_ns.scenes.error_points`). Content a late view shows first then starts from the view's own
+    pixels instead of the few points its triangulation adds, or none. 0: off. Does nothing with reset-after-add."""
+
     def __post_init__(self) -> None:
         self.restart_at_views = tuple(int(n) for n in self.restart_at_views)
         if any(n < 1 for n in self.restart_at_views):
             raise AfterAddError(f"--pipeline.selection.after-add.restart-at-views {' '.join(map(str, self.restart_at_views))}: "
                                 "view counts must be >= 1")
-        for name in ("refine_steps", "lr_rewind"):
+        for name, unit in (("refine_steps", "steps"), ("lr_rewind", "steps"), ("error_points", "points per view")):
             value = getattr(self, name)
             if not isinstance(value, int) or value < 0:
                 raise AfterAddError(f"--pipeline.selection.after-add.{name.replace('_', '-')} {value} must be a whole "
-                                    "number of steps >= 0 (0 turns it off)")
+                                    f"number of {unit} >= 0 (0 turns it off)")
 
         if self.lr_restart and self.lr_rewind:
             raise AfterAddError("--pipeline.selection.after-add.lr-restart and lr-rewind both move the learning rates "

@@ -17,7 +17,7 @@ import dataclasses
 import math
 import time
 from pathlib import Path
-from typing import Any, Callable, Dict, List, Optional, Tuple
+from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
@@ -201,6 +201,9 @@ class SelectionRounds:
                 also = "; the round's triangulated points away from them join, as after any round" if active_mode else ""
                 CONSOLE.print(f"restart-from splat: restarts at {' and '.join(map(str, restart_counts))} views start from "
                               f"the splat's own opaque Gaussians{also}", soft_wrap=True)
+        if self.config.reset_after_add and self.config.after_add.error_points:
+            CONSOLE.print("[yellow]error-points does nothing in this run: reset-after-add returns to the step-0 "
+                          "Gaussians at every round", soft_wrap=True)
         if self.config.reset_after_add and self.config.after_add.restart_at_last_add:
             CONSOLE.print("[yellow]restart-at-last-add does nothing in this run: reset-after-add returns to the step-0 "
                           "Gaussians at every round", soft_wrap=True)
@@ -254,8 +257,11 @@ class SelectionRounds:
             # else (active mode): the round's triangulated points away from the splat's join, as after any round
             after_add.update(reseeded)
             done["num_gaussians_after_reset"] = int(self.model.num_points)
-        elif self.config.after_add.enabled and optimizers is not None:
-            after_add.update(apply_after_add(self.config.after_add, self.model, optimizers, step, end or None))
+        else:
+            if self.config.after_add.enabled and optimizers is not None:
+                after_add.update(apply_after_add(self.config.after_add, self.model, optimizers, step, end or None))
+            if self.config.after_add.error_points and optimizers is not None:
+                after_add.update(self.add_error_points(step, optimizers, self.datamanager.history[-1].chosen_indices))
         if active_seeds:
             after_add.update(self.add_seed_points(step, optimizers))
         if after_add:
@@ -419,6 +425,32 @@ class SelectionRounds:
                           f"views, {added} away from the splat added ({model.num_points} Gaussians, {seconds:.1f} s)")
         writer.put_scalar("selection/seed_points_added", added, step)
         return {"seed_points_added": float(added), "seed_points_seconds": float(seconds)}
+
+    def add_error_points(self, step: int, optimizers, views: Sequence[int]) -> Dict[str, float]:
+        """`after-add error-points`: for each of `views` (the round's), Gaussians on the rays of the pixels its render
+        gets most wrong (`hpgs_ns.scenes.error_points`). Returns `error_points_added`."""
+        from hpgs_ns.metrics import photo_rgb
+        from hpgs_ns.scenes.error_points import points_where_render_errs
+        from hpgs_ns.scenes.view_points import view_distances
+
+        dm, model = self.datamanager, self.model
+        cameras = dm.train_cameras.to("cpu")  # as trained: the cached photos' size and intrinsics
+        distances = dict(zip(dm.active, view_distances(cameras, dm.active).tolist()))
+        # Derived from (seed, round), as the selection's generator is, so a resumed run adds the same points.
+        generator = torch.Generator().manual_seed(self.seed * 1_000_003 + len(dm.history) + 500_009)
+        added = 0
+        for view in views:
+            camera = cameras[int(view) : int(view) + 1]
+            render, depth, alpha = model.render_with_depth(camera)
+            photo = photo_rgb(dm.cached_train[int(view)]["image"])
+            xyz, rgb = points_where_render_errs(
+                camera.get_intrinsics_matrices()[0], camera.camera_to_worlds[0], render, depth, alpha, photo,
+                self.config.after_add.error_points, distances[int(view)], generator)
+            added += model.add_gaussians(xyz, rgb, optimizers)
+        CONSOLE.print(f"error points after round {len(dm.history)}: {added} Gaussians where the render of its "
+                      f"{len(views)} new view(s) was wrong ({model.num_points} Gaussians)")
+        writer.put_scalar("selection/error_points_added", added, step)
+        return {"error_points_added": float(added)}
 
     @torch.no_grad()
     def test_psnr(self) -> float:
