@@ -185,6 +185,8 @@ class SelectionRounds:
                               if reachable in restart_counts else
                               "[yellow]restart-at-last-add does nothing in this run: no round adds views",
                               soft_wrap=True)
+            if after_add.error_points and reachable <= len(dm.active):  # a final-set or reference run
+                CONSOLE.print("[yellow]error-points does nothing in this run: no round adds views", soft_wrap=True)
             if automatic and not after_add.restart_at_views:  # HP-GS's 20 + 7: none
                 at = " and ".join(map(str, automatic))
                 if random_start:

@@ -128,3 +128,14 @@ def test_reset_after_add_says_error_points_does_nothing(tiny_scene, tmp_path, ca
     trainer.train()
     assert "error_points_added" not in trainer.pipeline.datamanager.history[0].after_add
     assert "error-points does nothing in this run: reset-after-add" in capsys.readouterr().out
+
+
+def test_a_run_without_rounds_says_error_points_does_nothing(tiny_scene, tmp_path, capsys):
+    cfg = short_config(tiny_scene, tmp_path, steps=2, rounds=0)
+    cfg.pipeline.selection.after_add = AfterAddConfig(error_points=300)
+    trainer = cfg.setup(local_rank=0, world_size=1)
+    trainer.setup()
+    before = trainer.pipeline.model.num_points
+    trainer.train()
+    assert "error-points does nothing in this run: no round adds views" in capsys.readouterr().out
+    assert trainer.pipeline.model.num_points == before  # nothing added (refinement is off at these steps)
