@@ -30,8 +30,11 @@ def pixel_errors(render: torch.Tensor, photo: torch.Tensor) -> torch.Tensor:
 
 def error_weights(errors: torch.Tensor) -> torch.Tensor:
     """[H, W] how likely each pixel is drawn: its error where it exceeds the view's median error, else 0. The median
-    cut keeps the draws off the small error a fitted splat leaves everywhere (a design rule, not tuned)."""
-    return torch.where(errors > errors.median(), errors, torch.zeros_like(errors))
+    cut keeps the draws off the small error a fitted splat leaves everywhere (a design rule, not tuned). Where no
+    pixel exceeds it (half the view or more equally wrong, as an empty render of a plain wall), every pixel's
+    error."""
+    above = torch.where(errors > errors.median(), errors, torch.zeros_like(errors))
+    return above if bool((above > 0).any()) else errors
 
 
 def points_where_render_errs(

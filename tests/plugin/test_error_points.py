@@ -8,6 +8,8 @@ import math
 import pytest
 import torch
 from conftest import short_config
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from hpgs_ns.render.viewmats import world_to_camera
 from hpgs_ns.scenes.error_points import OPAQUE, error_weights, pixel_errors, points_where_render_errs
@@ -64,6 +66,36 @@ def test_points_lie_on_the_wrong_pixels_rays_in_the_photos_colours():
     assert torch.equal(rgb, (photo[y, x] * 255).round().to(torch.uint8))
 
 
+@settings(max_examples=40, derandomize=True, deadline=None, database=None,
+          suppress_health_check=[HealthCheck.too_slow])
+@given(quat=st.lists(st.floats(-1, 1), min_size=4, max_size=4).filter(lambda q: sum(v * v for v in q) > 0.01),
+       centre=st.lists(st.floats(-3, 3), min_size=3, max_size=3), focal=st.floats(5, 5000),
+       depth=st.floats(0.05, 50), distance=st.floats(0.05, 50))
+def test_any_pose_puts_each_point_on_its_pixels_ray(quat, centre, focal, depth, distance):
+    # nerfstudio's normalised frame: cameras within [-1, 1] (a little beyond), scene depths of 0.05-50
+    w, x, y, z = torch.nn.functional.normalize(torch.tensor(quat, dtype=torch.float64), dim=0).tolist()
+    rotation = torch.tensor([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                             [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                             [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+    pose = torch.cat([rotation, torch.tensor(centre, dtype=torch.float64)[:, None]], dim=1).float()
+    k = torch.tensor([[focal, 0.0, W / 2], [0.0, focal, H / 2], [0.0, 0.0, 1.0]])
+    render, _, alpha, photo = scene()
+    xyz, rgb = points_where_render_errs(k, pose, render, torch.full((H, W, 1), depth), alpha, photo, 12, distance,
+                                        torch.Generator().manual_seed(1))
+    assert xyz.shape == (12, 3) and bool(torch.isfinite(xyz).all())
+    view = world_to_camera(pose.double()[None])[0]
+    cam = xyz.double() @ view[:3, :3].T + view[:3, 3]
+    u, v = cam[:, 0] / cam[:, 2] * focal + W / 2, cam[:, 1] / cam[:, 2] * focal + H / 2
+    assert torch.allclose(u, (u - 0.5).round() + 0.5, atol=0.05) and torch.allclose(v, (v - 0.5).round() + 0.5, atol=0.05)
+    pixels = {(int(r), int(c)) for r, c in zip((v - 0.5).round().tolist(), (u - 0.5).round().tolist())}
+    assert pixels == {(r, c) for r in range(3, 6) for c in range(5, 9)}  # the wrong pixels, each once
+    opaque = torch.tensor([c < 7 for _, c in sorted(pixels)])  # PATCH's left half
+    by_pixel = dict(zip(zip((v - 0.5).round().long().tolist(), (u - 0.5).round().long().tolist()), cam[:, 2].tolist()))
+    z = torch.tensor([by_pixel[p] for p in sorted(pixels)])
+    assert torch.allclose(z[opaque], torch.full((6,), depth, dtype=z.dtype), rtol=1e-5)
+    assert bool(((z[~opaque] >= NEAR * distance * (1 - 1e-5)) & (z[~opaque] <= FAR * distance * (1 + 1e-5))).all())
+
+
 def test_the_draws_favour_larger_errors_and_stop_at_count():
     render, depth, alpha, photo = scene()
     render[3:6, 5:7] = photo[3:6, 5:7] + 0.05  # half the patch a little wrong, half very wrong
@@ -84,6 +116,8 @@ def test_no_error_no_points_and_the_median_cut():
     assert xyz.shape == (0, 3) and rgb.shape == (0, 3)
     errors = torch.tensor([[0.1, 0.2], [0.3, 0.4]])
     assert torch.equal(error_weights(errors), torch.tensor([[0.0, 0.0], [0.3, 0.4]]))  # median 0.2: at or below it, 0
+    plain = torch.tensor([[0.5, 0.5], [0.5, 0.2]])  # nothing above the median (0.5): every pixel's error
+    assert torch.equal(error_weights(plain), plain)
     assert torch.allclose(pixel_errors(torch.ones(1, 1, 3), torch.tensor([[[0.0, 0.5, 1.0]]])), torch.tensor([[0.5]]))
     with pytest.raises(ValueError, match=r"\(12, 16\) render of a \(6, 8\) photo"):
         points_where_render_errs(K, camera_to_world(), render, depth, alpha, photo[:6, :8], 5, DISTANCE)
