@@ -316,13 +316,7 @@ class HpgsSplatfactoModel(SplatfactoModel):
     def render_with_depth(self, camera: Cameras) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Eval-mode render of one camera ([1]) at its size: (rgb [H, W, 3] over the eval background, expected
         z-depth [H, W, 1], alpha [H, W, 1])."""
-        camera = camera.to(self.device)
-        width, height = int(camera.width[0].item()), int(camera.height[0].item())
-        with self.eval_mode():
-            render, alpha, _ = self._rasterize_cameras(
-                camera.camera_to_worlds.reshape(-1, 3, 4), camera.get_intrinsics_matrices().reshape(-1, 3, 3), width,
-                height, "RGB+ED")
-            rgb = composite(render[..., :3], alpha, self._get_background_color())
+        rgb, render, alpha = self._eval_render(camera, "RGB+ED")
         return rgb[0], render[0, ..., 3:4], alpha[0]
 
     def splat(self) -> Splat:
@@ -628,12 +622,17 @@ class HpgsSplatfactoModel(SplatfactoModel):
 
         Same image as `get_outputs` in eval mode, without depth; used for selection, where one call per view would
         cost more in overhead than in rasterization."""
+        return self._eval_render(cameras)[0]
+
+    def _eval_render(self, cameras: Cameras, render_mode: str = "RGB") -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Eval mode, cameras ([C]) of one size in one rasterization call: (rgb [C, H, W, 3] over the eval background,
+        the raw render [C, H, W, X] of `render_mode`, alpha [C, H, W, 1])."""
         cameras = cameras.to(self.device)
         W, H = int(cameras.width[0].item()), int(cameras.height[0].item())
         if not (bool((cameras.width == W).all()) and bool((cameras.height == H).all())):
             raise ValueError("render_rgb_batch needs cameras of one size")
         with self.eval_mode():
             render, alpha, _ = self._rasterize_cameras(
-                cameras.camera_to_worlds.reshape(-1, 3, 4), cameras.get_intrinsics_matrices().reshape(-1, 3, 3), W, H
-            )
-            return composite(render, alpha, self._get_background_color())
+                cameras.camera_to_worlds.reshape(-1, 3, 4), cameras.get_intrinsics_matrices().reshape(-1, 3, 3), W, H,
+                render_mode)
+            return composite(render[..., :3], alpha, self._get_background_color()), render, alpha

@@ -203,12 +203,12 @@ class SelectionRounds:
                 also = "; the round's triangulated points away from them join, as after any round" if active_mode else ""
                 CONSOLE.print(f"restart-from splat: restarts at {' and '.join(map(str, restart_counts))} views start from "
                               f"the splat's own opaque Gaussians{also}", soft_wrap=True)
-        if self.config.reset_after_add and self.config.after_add.error_points:
-            CONSOLE.print("[yellow]error-points does nothing in this run: reset-after-add returns to the step-0 "
-                          "Gaussians at every round", soft_wrap=True)
-        if self.config.reset_after_add and self.config.after_add.restart_at_last_add:
-            CONSOLE.print("[yellow]restart-at-last-add does nothing in this run: reset-after-add returns to the step-0 "
-                          "Gaussians at every round", soft_wrap=True)
+        if self.config.reset_after_add:
+            for flag, on in (("error-points", self.config.after_add.error_points),
+                             ("restart-at-last-add", self.config.after_add.restart_at_last_add)):
+                if on:
+                    CONSOLE.print(f"[yellow]{flag} does nothing in this run: reset-after-add returns to the step-0 "
+                                  "Gaussians at every round", soft_wrap=True)
         if self.config.after_add.restart_from == "splat" and not restart_counts:
             why = ("reset-after-add returns to the step-0 Gaussians at every round" if self.config.reset_after_add
                    else "no restart is due (--pipeline.selection.after-add.restart-at-views sets when)")
