@@ -10,7 +10,8 @@ With `--against BASE` (the trainer a mechanism is judged against, e.g. `benchmar
 PSNR FOLDER - BASE paired by (scene, selector, seed), on the pairs whose runs differ (a run copied from BASE, as fox
 in docs/lab/seeded-restarts-judge-plan.md, is left out: the mechanism did not touch it), its bar `--min-run-gain`
 (-0.2 dB), and the mean run wall of each, whose ratio is read against the lease loads (#46's guard: at most +10%);
-with `--also-over SCENE ...`, the run PSNR gain again over those scenes alone (a pilot rule's subset).
+with `--also-over SCENE ...`, the run PSNR gain again over those scenes alone (a pilot rule's subset); and, per
+selector, the run and final-set PSNR gains apart (read beside the cost, not a bar).
 
     python benchmarks/done_when_46.py benchmarks/results/real6-seeded-restarts --against benchmarks/results/real12 \
         [--also-over SCENE ...] [--out FILE.json]
@@ -79,6 +80,31 @@ def against(rows: Sequence[RunResult], base: Sequence[RunResult], min_gain: floa
             "mean_wall_s": wall, "wall_ratio": wall["folder"] / wall["base"]}
 
 
+def selector_gains(rows: Sequence[RunResult], base: Sequence[RunResult], final_sets: Sequence[RunResult],
+                   base_final_sets: Sequence[RunResult]) -> Dict[str, dict]:
+    """Per selector, run PSNR and final-set PSNR FOLDER - BASE, paired by (scene, selector, seed): read beside the
+    cost, since a mechanism that changes the renders changes the views of the selectors that read them (`hpgs`,
+    `fisher`), so their cost moves with their final-sets as well as with the trainer."""
+    def run_key(r: RunResult) -> tuple:
+        return (r.scene, r.selector, r.seed)
+
+    def final_set_key(r: RunResult) -> tuple:
+        return (r.scene, r.final_set_of.selector, r.final_set_of.seed)
+
+    out: Dict[str, dict] = {}
+    for part, these, those, key in (("run", rows, base, run_key), ("final_set", final_sets, base_final_sets, final_set_key)):
+        by_key = {key(r): r for r in those}
+        gains: Dict[str, stats.Gains] = {}
+        for r in these:
+            b = by_key.get(key(r))
+            if b is not None:
+                cell = gains.setdefault(key(r)[1], {}).setdefault(r.scene, {})
+                cell[len(cell)] = r.test.psnr - b.test.psnr
+        for selector, g in gains.items():
+            out.setdefault(selector, {})[part] = interval(g)
+    return out
+
+
 def line(name: str, v: dict) -> str:
     return f"  {name:>14}: {v['mean']:+.2f} dB [{v['lo']:+.2f}, {v['hi']:+.2f}] ({v['scenes']} scenes, {v['pairs']} pairs)"
 
@@ -121,6 +147,12 @@ def main() -> None:
                               f"p {g['p']:.3f} ({g['pairs']} pairs)")
             else:
                 print(f"  no run here differs from one in {args.against}")
+            per = selector_gains(rows, base, load_final_sets(folder), load_final_sets(args.against))
+            out["against"]["by_selector"] = per
+            for selector, parts in sorted(per.items()):
+                print(f"  {selector} - {args.against}: " + "; ".join(
+                    f"{part.replace('_', '-')} {v['mean']:+.2f} dB [{v['lo']:+.2f}, {v['hi']:+.2f}] ({v['pairs']} pairs)"
+                    for part, v in parts.items()))
         report[str(folder)] = out
     if args.out:
         write_json_atomic(args.out, report)

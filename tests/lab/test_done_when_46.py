@@ -67,3 +67,15 @@ def test_run_gain_over_a_subset_of_scenes(done_when, tmp_path):
     sub = done_when.against(arm, base, min_gain=-0.1, scenes=["s2", "s3"])["run_gain"]
     assert sub["mean"] == pytest.approx(0.4) and sub["pairs"] == 4 and sub["scenes"] == 2
     assert sub["p"] == pytest.approx(0.5)  # two scenes, both positive: the sign-flip floor 2 / 2^2
+
+
+def test_run_and_final_set_gains_per_selector(done_when, tmp_path):
+    base_dir = folder(tmp_path / "base", {"random": 0.1, "hpgs": 0.2}, run_psnr=20.0)
+    arm_dir = folder(tmp_path / "arm", {"random": 0.3, "hpgs": 0.9}, run_psnr=19.8)
+    per = done_when.selector_gains(done_when.runs_of(arm_dir), done_when.runs_of(base_dir), load_final_sets(arm_dir),
+                                   load_final_sets(base_dir))
+    assert set(per) == {"random", "hpgs"}
+    assert per["random"]["run"]["mean"] == pytest.approx(-0.2) and per["random"]["run"]["pairs"] == 6
+    # final-sets: (19.8 + 0.3) - (20.0 + 0.1) for random, (19.8 + 0.9) - (20.0 + 0.2) for hpgs
+    assert per["random"]["final_set"]["mean"] == pytest.approx(0.0, abs=1e-9)
+    assert per["hpgs"]["final_set"]["mean"] == pytest.approx(0.5) and per["hpgs"]["final_set"]["pairs"] == 6
