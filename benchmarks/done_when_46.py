@@ -10,8 +10,11 @@ With `--against BASE` (the trainer a mechanism is judged against, e.g. `benchmar
 PSNR FOLDER - BASE paired by (scene, selector, seed), on the pairs whose runs differ (a run copied from BASE, as fox
 in docs/lab/seeded-restarts-judge-plan.md, is left out: the mechanism did not touch it), its bar `--min-run-gain`
 (-0.2 dB), and the mean run wall of each, whose ratio is read against the lease loads (#46's guard: at most +10%);
-with `--also-over SCENE ...`, the run PSNR gain again over those scenes alone (a pilot rule's subset); and, per
-selector, the run and final-set PSNR gains apart (read beside the cost, not a bar).
+with `--also-over SCENE ...`, the run PSNR gain again over those scenes alone (a pilot rule's subset); per
+selector, the run and final-set PSNR gains apart; and the final-sets both folders trained on the same views
+(`random`'s and `farthest`'s, whose views do not depend on training): where a mechanism does not act on final-sets
+these are replicates, so their difference is the trainer's run-to-run noise, and each selector's cost is given
+again against the mean of both (read beside the cost, not bars).
 
     python benchmarks/done_when_46.py benchmarks/results/real6-seeded-restarts --against benchmarks/results/real12 \
         [--also-over SCENE ...] [--out FILE.json]
@@ -21,7 +24,7 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
-from statistics import mean
+from statistics import mean, stdev
 from typing import Dict, List, Optional, Sequence
 
 from hpgs_lab import stats
@@ -105,6 +108,54 @@ def selector_gains(rows: Sequence[RunResult], base: Sequence[RunResult], final_s
     return out
 
 
+def replicate_final_sets(final_sets: Sequence[RunResult], base_final_sets: Sequence[RunResult]) -> Dict[str, dict]:
+    """Per selector, the final-sets FOLDER and BASE trained on the same views, paired by (scene, seed): FOLDER - BASE
+    PSNR (interval), the SD of that difference, and the largest gap on one test view; with every other setting the
+    same these are replicates, and their spread is the noise a pilot's pairs carry."""
+    def key(r: RunResult) -> tuple:
+        return (r.scene, r.final_set_of.selector, r.final_set_of.seed, tuple(sorted(r.final_set_of.views)))
+
+    by_key = {key(r): r for r in base_final_sets}
+    pairs: Dict[str, list] = {}
+    for r in final_sets:
+        b = by_key.get(key(r))
+        if b is not None:
+            pairs.setdefault(r.final_set_of.selector, []).append((r, b))
+    out: Dict[str, dict] = {}
+    for selector, these in pairs.items():
+        gains: stats.Gains = {}
+        worst = (0.0, "")
+        for r, b in these:
+            cell = gains.setdefault(r.scene, {})
+            cell[len(cell)] = r.test.psnr - b.test.psnr
+            base_view = {v.name: v.psnr for v in b.test_views}
+            for v in r.test_views:
+                if v.name in base_view and abs(v.psnr - base_view[v.name]) > abs(worst[0]):
+                    worst = (v.psnr - base_view[v.name], f"{r.scene} seed{r.final_set_of.seed} {v.name}")
+        diffs = [d for cell in gains.values() for d in cell.values()]
+        out[selector] = {**interval(gains), "sd": stdev(diffs) if len(diffs) > 1 else 0.0,
+                         "worst_view_gap": worst[0], "worst_view": worst[1],
+                         "keys": [key(r)[:3] for r, _ in these]}
+    return out
+
+
+def cost_against_both(rows: Sequence[RunResult], base: Sequence[RunResult], final_sets: Sequence[RunResult],
+                      base_final_sets: Sequence[RunResult], keys: Sequence[tuple]) -> Dict[str, float]:
+    """Mean schedule cost of FOLDER's and BASE's runs at `keys` (scene, selector, seed) against the mean of both
+    final-sets there: the same reference for both, so the noise of one replicate does not move one arm's cost."""
+    def by(runs: Sequence[RunResult], final: bool) -> dict:
+        return {((r.scene, r.final_set_of.selector, r.final_set_of.seed) if final else (r.scene, r.selector, r.seed)): r
+                for r in runs}
+
+    run, base_run, fs, base_fs = by(rows, False), by(base, False), by(final_sets, True), by(base_final_sets, True)
+    keys = [k for k in keys if k in run and k in base_run]
+    if not keys:
+        return {}
+    ref = {k: (fs[k].test.psnr + base_fs[k].test.psnr) / 2 for k in keys}
+    return {"folder": mean(ref[k] - run[k].test.psnr for k in keys),
+            "base": mean(ref[k] - base_run[k].test.psnr for k in keys), "pairs": len(keys)}
+
+
 def line(name: str, v: dict) -> str:
     return f"  {name:>14}: {v['mean']:+.2f} dB [{v['lo']:+.2f}, {v['hi']:+.2f}] ({v['scenes']} scenes, {v['pairs']} pairs)"
 
@@ -153,6 +204,16 @@ def main() -> None:
                 print(f"  {selector} - {args.against}: " + "; ".join(
                     f"{part.replace('_', '-')} {v['mean']:+.2f} dB [{v['lo']:+.2f}, {v['hi']:+.2f}] ({v['pairs']} pairs)"
                     for part, v in parts.items()))
+            finals, base_finals = load_final_sets(folder), load_final_sets(args.against)
+            reps = replicate_final_sets(finals, base_finals)
+            for selector, v in sorted(reps.items()):
+                both = cost_against_both(rows, base, finals, base_finals, v.pop("keys"))
+                v["cost_against_both"] = both
+                print(f"  {selector} final-sets on the same views here and in {args.against} (replicates if nothing "
+                      f"acts on final-sets): {v['mean']:+.2f} dB [{v['lo']:+.2f}, {v['hi']:+.2f}] ({v['pairs']} pairs), "
+                      f"SD {v['sd']:.2f} dB, largest gap on one view {v['worst_view_gap']:+.1f} dB ({v['worst_view']})"
+                      + (f"; cost against their mean: here {both['folder']:+.2f}, base {both['base']:+.2f}" if both else ""))
+            out["against"]["replicate_final_sets"] = reps
         report[str(folder)] = out
     if args.out:
         write_json_atomic(args.out, report)

@@ -79,3 +79,30 @@ def test_run_and_final_set_gains_per_selector(done_when, tmp_path):
     # final-sets: (19.8 + 0.3) - (20.0 + 0.1) for random, (19.8 + 0.9) - (20.0 + 0.2) for hpgs
     assert per["random"]["final_set"]["mean"] == pytest.approx(0.0, abs=1e-9)
     assert per["hpgs"]["final_set"]["mean"] == pytest.approx(0.5) and per["hpgs"]["final_set"]["pairs"] == 6
+
+
+def test_final_sets_on_the_same_views_read_as_replicates_and_set_one_reference_for_both_costs(done_when, tmp_path):
+    from hpgs_lab.results import ViewMetrics
+
+    def final_set(psnr, views, view_psnr, seed=0, selector="random"):
+        return make_result("s1", "fisherrf", "final-set", seed, psnr, **VIEWS, final_set_of=SourceRun(
+            selector, seed, 0, views), test_views=[ViewMetrics(n, p, 0.5, 0.3) for n, p in view_psnr.items()])
+
+    base = [final_set(20.0, ["v0", "v1"], {"t0": 20.0, "t8": 20.0}),
+            final_set(21.0, ["v0", "v2"], {"t0": 21.0, "t8": 21.0}, seed=1),
+            final_set(22.0, ["v0", "v3"], {"t0": 22.0, "t8": 22.0}, selector="hpgs")]
+    arm = [final_set(19.0, ["v1", "v0"], {"t0": 24.0, "t8": 14.0}),  # same views, listed in another order
+           final_set(21.5, ["v0", "v2"], {"t0": 21.5, "t8": 21.5}, seed=1),
+           final_set(23.0, ["v0", "v4"], {"t0": 23.0, "t8": 23.0}, selector="hpgs")]  # other views: no replicate
+    reps = done_when.replicate_final_sets(arm, base)
+    assert set(reps) == {"random"} and reps["random"]["pairs"] == 2
+    assert reps["random"]["mean"] == pytest.approx(-0.25)  # (-1.0 + 0.5) / 2
+    assert reps["random"]["sd"] == pytest.approx(1.5 / 2 ** 0.5)
+    assert reps["random"]["worst_view_gap"] == pytest.approx(-6.0) and reps["random"]["worst_view"] == "s1 seed0 t8"
+    runs = [make_result("s1", "fisherrf", "random", 0, 19.0), make_result("s1", "fisherrf", "random", 1, 20.0)]
+    base_runs = [make_result("s1", "fisherrf", "random", 0, 19.5), make_result("s1", "fisherrf", "random", 1, 20.0)]
+    both = done_when.cost_against_both(runs, base_runs, arm, base, reps["random"]["keys"])
+    # references: seed 0 (19 + 20) / 2 = 19.5, seed 1 (21.5 + 21) / 2 = 21.25
+    assert both["pairs"] == 2
+    assert both["folder"] == pytest.approx(((19.5 - 19.0) + (21.25 - 20.0)) / 2)
+    assert both["base"] == pytest.approx(((19.5 - 19.5) + (21.25 - 20.0)) / 2)
