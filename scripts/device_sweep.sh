@@ -19,7 +19,8 @@
 #   bash scripts/device_sweep.sh env                 # keep what this call carried (kernels, weights, scenes) in /tmp
 #   bash scripts/device_sweep.sh watch SECONDS DIR=N...  # `commands` results: every minute, count each /tmp/extra/DIR's
 #                                                    # seed*.json and pack them all into $OUT/extra.tgz (temp, then
-#                                                    # renamed: a call cut off still hands back the last pack); stop
+#                                                    # renamed: a call cut off still hands back the last pack), the
+#                                                    # runs' worst-view JPEGs into $OUT/worst.tar; stop
 #                                                    # once each DIR has its N or SECONDS pass
 # Each start/parallel/then call adds a group (its own log, /tmp/sweep-N.log; its own copy of the code, /tmp/src-N,
 # as the device tool rewrites the working tree on every call); groups started by `start` or
@@ -138,6 +139,15 @@ watch)
     echo "$line"
     (cd /tmp/extra && find "${dirs[@]}" -name '*.json' -not -path '*/_*' 2>/dev/null | tar czf "$OUT/extra.tmp.tgz" -T - \
       && mv "$OUT/extra.tmp.tgz" "$OUT/extra.tgz")
+    # the runs' worst-view JPEGs in a pack of their own, so that their size never holds the results back (a file
+    # over 16 MiB does not come back): every one while the pack stays under 15 MiB, else each run's worst alone
+    for pattern in 'seed*-worst*.jpg' 'seed*-worst0.jpg'; do
+      (cd /tmp/extra && find "${dirs[@]}" -name "$pattern" -not -path '*/_*' 2>/dev/null | tar cf "$OUT/worst.tmp.tar" -T -)
+      if [ "$(stat -c %s "$OUT/worst.tmp.tar" 2>/dev/null || echo 0)" -lt 15728640 ]; then
+        mv "$OUT/worst.tmp.tar" "$OUT/worst.tar"; break
+      fi
+      rm -f "$OUT/worst.tmp.tar"
+    done
     [ "$done_all" = 1 ] && break
     [ $(($(date +%s) + 60)) -gt "$end" ] && break
     sleep 60
