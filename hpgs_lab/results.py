@@ -96,12 +96,15 @@ class Metrics:
 
 @dataclass(frozen=True)
 class ViewMetrics:
-    """One test view's metrics at the end of training."""
+    """One test view's metrics at the end of training; the render's depth over its opaque pixels (10th percentile,
+    median; `hpgs_ns.trainer.view_depths`) where the run recorded it."""
 
     name: str
     psnr: float
     ssim: float
     lpips: float
+    depth_p10: Optional[float] = None
+    depth_median: Optional[float] = None
 
 
 @dataclass(frozen=True)
@@ -250,8 +253,10 @@ class RunResult:
                 value = {str(k): v for k, v in value.items()}  # JSON keys are strings
             elif f.name in ("test", "timing", "provenance"):
                 value = {g.name: getattr(value, g.name) for g in fields(value)}
-            elif f.name in ("psnr_per_round", "test_views"):
+            elif f.name == "psnr_per_round":
                 value = [{g.name: getattr(v, g.name) for g in fields(v)} for v in value]
+            elif f.name == "test_views":  # the depths only where recorded: older results rewrite unchanged
+                value = [{g.name: getattr(v, g.name) for g in fields(v) if getattr(v, g.name) is not None} for v in value]
             elif f.name == "final_set_of":
                 if value is None:
                     continue  # only final-set references have one

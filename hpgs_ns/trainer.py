@@ -411,9 +411,9 @@ def check_resume_matches(pipeline) -> None:
 
 def write_final_eval(trainer: Trainer, path: Path, worst_views: int = 0) -> Path:
     """`ns-eval`'s output for the trainer's current weights (what `_after_train` saves as the final checkpoint),
-    plus each test view's own metrics (`test_views`: name, psnr, ssim, lpips, in the test split's order) and, with
-    `worst_views`, JPEGs of the lowest-PSNR views beside `path` (`worst_views`: name, psnr, image file name), and
-    the splat's size (`num_gaussians`)."""
+    plus each test view's own metrics (`test_views`: name, psnr, ssim, lpips, and `view_depths`'s two depths, in
+    the test split's order) and, with `worst_views`, JPEGs of the lowest-PSNR views beside `path` (`worst_views`:
+    name, psnr, image file name), and the splat's size (`num_gaussians`)."""
     pipeline = trainer.pipeline
     model = pipeline.model
     per_view: List[Dict[str, float]] = []
@@ -422,7 +422,7 @@ def write_final_eval(trainer: Trainer, path: Path, worst_views: int = 0) -> Path
 
     def recording(outputs, batch):
         metrics_dict, images = score_view(outputs, batch)
-        per_view.append({k: float(v) for k, v in metrics_dict.items()})
+        per_view.append({**{k: float(v) for k, v in metrics_dict.items()}, **view_depths(outputs)})
         if worst_views > 0 and "img" in images and "psnr" in metrics_dict:
             worst.append((float(metrics_dict["psnr"]), len(per_view) - 1, images["img"].detach().cpu()))
             worst.sort(key=lambda item: item[0])
@@ -453,6 +453,20 @@ def write_final_eval(trainer: Trainer, path: Path, worst_views: int = 0) -> Path
         "num_gaussians": int(getattr(model, "num_points", 0)),
     }
     return write_json_atomic(path, payload)
+
+
+def view_depths(outputs: Dict[str, Any]) -> Dict[str, Optional[float]]:
+    """The 10th percentile and median of a render's depth over its opaque pixels (accumulation >= 0.5), in the
+    splat's units: a view that fails because Gaussians float just in front of its camera shows a near 10th
+    percentile that a replicate of the same run does not. None where the render has no depth or no opaque pixel."""
+    depth, alpha = outputs.get("depth"), outputs.get("accumulation")
+    if depth is None or alpha is None:
+        return {"depth_p10": None, "depth_median": None}
+    values = depth.detach().reshape(-1)[alpha.detach().reshape(-1) >= 0.5].float().sort().values
+    if values.numel() == 0:
+        return {"depth_p10": None, "depth_median": None}
+    return {"depth_p10": float(values[int(0.1 * (values.numel() - 1))]),
+            "depth_median": float(values[(values.numel() - 1) // 2])}
 
 
 def save_jpeg(image: torch.Tensor, path: Path) -> Path:

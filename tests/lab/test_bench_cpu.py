@@ -68,6 +68,8 @@ def test_tiny_bench_writes_results_table_plots_and_resumes(tiny_bench, tiny_scen
     lowest = sorted(farthest.test_views, key=lambda v: v.psnr)[:2]
     assert [(w["name"], w["image"]) for w in farthest.worst_views] == [(v.name, f"seed0-worst{k}.jpg") for k, v in enumerate(lowest)]
     assert all(result.with_name(w["image"]).stat().st_size > 1000 for w in farthest.worst_views)
+    # each test view's render depths come through to the result (read back from its JSON)
+    assert all(0 < v.depth_p10 <= v.depth_median for v in farthest.test_views)
     assert all(r.num_gaussians and r.num_gaussians > 100 for r in rows)  # the tiny scene starts from 1500 points
     assert {r.seed_points for r in rows} == {"colmap"}  # `auto` as resolved: the tiny scene has a point cloud
     # the table reports each run's own numbers: one seed, so no spread

@@ -152,6 +152,8 @@ def test_stock_ns_eval_and_ns_viewer_open_the_checkpoint(trained, tmp_path):
     views = final["test_views"]
     assert [v["name"] for v in views] == trained["trainer"].pipeline.datamanager.test_view_names
     assert sum(v["psnr"] for v in views) / len(views) == pytest.approx(results["psnr"], rel=1e-6)
+    # and where its render is opaque, how far: the 10th percentile in front of the median, both in front of the camera
+    assert all(0 < v["depth_p10"] <= v["depth_median"] for v in views)
     # the two lowest-PSNR views, saved beside the JSON as ground truth | render
     lowest = sorted(views, key=lambda v: v["psnr"])[:2]
     assert [(w["name"], w["psnr"]) for w in final["worst_views"]] == [(v["name"], pytest.approx(v["psnr"])) for v in lowest]
@@ -184,3 +186,19 @@ def test_the_papers_selector_picks_the_view_it_scores_farthest_from_the_training
         assert len(scores) == 35 - 6 - k and all(0.0 <= s <= 2.0 for s in scores.values())  # cosine distances
         assert r["chosen"] == [max(scores, key=scores.get)]
         assert len(set(scores.values())) > 1  # distinct features, not a tie broken by order
+
+
+def test_view_depths_are_the_opaque_pixels_10th_percentile_and_median():
+    from hpgs_ns.trainer import view_depths
+
+    # a 10x10 render: 20 pixels of a floater at depth 0.1, 70 of a wall at 3.0, 10 transparent at 0.05 (left out)
+    depth = torch.full((10, 10, 1), 3.0)
+    alpha = torch.ones((10, 10, 1))
+    depth.view(-1)[:20] = 0.1
+    depth.view(-1)[20:30], alpha.view(-1)[20:30] = 0.05, 0.4
+    assert view_depths({"depth": depth, "accumulation": alpha}) == pytest.approx({"depth_p10": 0.1, "depth_median": 3.0})
+    depth.view(-1)[:20] = 2.0  # the floater gone: the 10th percentile moves back to the wall's side
+    assert view_depths({"depth": depth, "accumulation": alpha})["depth_p10"] == pytest.approx(2.0)
+    none = {"depth_p10": None, "depth_median": None}
+    assert view_depths({"depth": depth, "accumulation": alpha * 0.1}) == none  # nothing opaque
+    assert view_depths({"rgb": depth}) == none  # a render without depth
