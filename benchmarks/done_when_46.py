@@ -128,10 +128,13 @@ def replicate_final_sets(final_sets: Sequence[RunResult], base_final_sets: Seque
         for r, b in these:
             cell = gains.setdefault(r.scene, {})
             cell[len(cell)] = r.test.psnr - b.test.psnr
-            base_view = {v.name: v.psnr for v in b.test_views}
+            base_view = {v.name: v for v in b.test_views}
             for v in r.test_views:
-                if v.name in base_view and abs(v.psnr - base_view[v.name]) > abs(worst[0]):
-                    worst = (v.psnr - base_view[v.name], f"{r.scene} seed{r.final_set_of.seed} {v.name}")
+                w = base_view.get(v.name)
+                if w is not None and abs(v.psnr - w.psnr) > abs(worst[0]):
+                    depths = (f"; depth p10 {v.depth_p10:.3g} here, {w.depth_p10:.3g} there"
+                              if v.depth_p10 is not None and w.depth_p10 is not None else "")
+                    worst = (v.psnr - w.psnr, f"{r.scene} seed{r.final_set_of.seed} {v.name}{depths}")
         diffs = [d for cell in gains.values() for d in cell.values()]
         out[selector] = {**interval(gains), "sd": stdev(diffs) if len(diffs) > 1 else 0.0,
                          "worst_view_gap": worst[0], "worst_view": worst[1],

@@ -99,6 +99,11 @@ def test_final_sets_on_the_same_views_read_as_replicates_and_set_one_reference_f
     assert reps["random"]["mean"] == pytest.approx(-0.25)  # (-1.0 + 0.5) / 2
     assert reps["random"]["sd"] == pytest.approx(1.5 / 2 ** 0.5)
     assert reps["random"]["worst_view_gap"] == pytest.approx(-6.0) and reps["random"]["worst_view"] == "s1 seed0 t8"
+    # with the renders' depths recorded, the line says how near each copy's opaque pixels reach
+    arm[0] = final_set(19.0, ["v0", "v1"], {"t0": 24.0, "t8": 14.0})
+    arm[0].test_views[1] = ViewMetrics("t8", 14.0, 0.5, 0.3, depth_p10=0.02, depth_median=1.5)
+    base[0].test_views[1] = ViewMetrics("t8", 20.0, 0.5, 0.3, depth_p10=0.9, depth_median=1.6)
+    assert done_when.replicate_final_sets(arm, base)["random"]["worst_view"] == "s1 seed0 t8; depth p10 0.02 here, 0.9 there"
     runs = [make_result("s1", "fisherrf", "random", 0, 19.0), make_result("s1", "fisherrf", "random", 1, 20.0)]
     base_runs = [make_result("s1", "fisherrf", "random", 0, 19.5), make_result("s1", "fisherrf", "random", 1, 20.0)]
     both = done_when.cost_against_both(runs, base_runs, arm, base, reps["random"]["keys"])
