@@ -173,10 +173,11 @@ def main() -> None:
     ap.add_argument("--out", type=Path)
     args = ap.parse_args()
     base = runs_of(args.against) if args.against else None
+    base_finals = load_final_sets(args.against) if args.against else None
     report = {}
     for folder in args.folders:
-        rows = runs_of(folder)
-        out = done_when(rows, load_final_sets(folder))
+        rows, finals = runs_of(folder), load_final_sets(folder)
+        out = done_when(rows, finals)
         print(f"== {folder}: schedule cost, FisherRF protocol")
         for s, v in out["selectors"].items():
             print(line(s, v) + ("" if v["mean"] <= SELECTOR_BAR else f"  > {SELECTOR_BAR}"))
@@ -201,13 +202,12 @@ def main() -> None:
                               f"p {g['p']:.3f} ({g['pairs']} pairs)")
             else:
                 print(f"  no run here differs from one in {args.against}")
-            per = selector_gains(rows, base, load_final_sets(folder), load_final_sets(args.against))
+            per = selector_gains(rows, base, finals, base_finals)
             out["against"]["by_selector"] = per
             for selector, parts in sorted(per.items()):
                 print(f"  {selector} - {args.against}: " + "; ".join(
                     f"{part.replace('_', '-')} {v['mean']:+.2f} dB [{v['lo']:+.2f}, {v['hi']:+.2f}] ({v['pairs']} pairs)"
                     for part, v in parts.items()))
-            finals, base_finals = load_final_sets(folder), load_final_sets(args.against)
             reps = replicate_final_sets(finals, base_finals)
             for selector, v in sorted(reps.items()):
                 both = cost_against_both(rows, base, finals, base_finals, v.pop("keys"))
