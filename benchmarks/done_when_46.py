@@ -14,7 +14,9 @@ with `--also-over SCENE ...`, the run PSNR gain again over those scenes alone (a
 selector, the run and final-set PSNR gains apart; and the final-sets both folders trained on the same views
 (`random`'s and `farthest`'s, whose views do not depend on training): where a mechanism does not act on final-sets
 these are replicates, so their difference is the trainer's run-to-run noise, and each selector's cost is given
-again against the mean of both (read beside the cost, not bars).
+again against the mean of both (read beside the cost, not bars). Where the runs recorded each test view's render depth,
+also the views nearer in the run than in its final-set (`near_views`: 10th-percentile depth below 0.8x, the
+signature of Gaussians floating in front of that camera) and their share of the PSNR the runs lose.
 
     python benchmarks/done_when_46.py benchmarks/results/real6-seeded-restarts --against benchmarks/results/real12 \
         [--also-over SCENE ...] [--out FILE.json]
@@ -159,6 +161,44 @@ def cost_against_both(rows: Sequence[RunResult], base: Sequence[RunResult], fina
             "base": mean(ref[k] - base_run[k].test.psnr for k in keys), "pairs": len(keys)}
 
 
+NEAR_RATIO = 0.8
+
+
+def near_views(rows: Sequence[RunResult], final_sets: Sequence[RunResult], ratio: float = NEAR_RATIO) -> dict:
+    """Each run's test views against the same views in its final-set, where both recorded depth: how many are
+    nearer in the run (depth_p10 below `ratio` x the final-set's), their mean run - final-set PSNR, the rest's, and
+    the mean cost over pairs as recorded and as it would be with the near views at their final-set's PSNR; also per
+    start (`seed_points`)."""
+    near, rest, by_start, costs, without = [], [], {}, [], []
+    for pair in schedule_pairs(rows, final_sets)[0]:
+        final_view = {v.name: v for v in pair.final.test_views}
+        start = by_start.setdefault(pair.run.seed_points or "unknown", {"pairs": 0, "near": 0, "views": 0, "cost": []})
+        counted, lost = False, 0.0
+        for v in pair.run.test_views:
+            w = final_view.get(v.name)
+            if w is None or v.depth_p10 is None or w.depth_p10 is None:
+                continue
+            counted = True
+            is_near = v.depth_p10 < ratio * w.depth_p10
+            (near if is_near else rest).append(v.psnr - w.psnr)
+            lost += (w.psnr - v.psnr) if is_near else 0.0
+            start["near"] += int(is_near)
+            start["views"] += 1
+        if counted:
+            start["pairs"] += 1
+            cost = pair.final.test.psnr - pair.run.test.psnr
+            start["cost"].append(cost)
+            costs.append(cost)
+            without.append(cost - lost / len(pair.run.test_views))
+    if not near and not rest:
+        return {}
+    by_start = {k: {"pairs": v["pairs"], "near": v["near"], "views": v["views"], "cost": mean(v["cost"])}
+                for k, v in by_start.items() if v["pairs"]}
+    return {"ratio": ratio, "views": len(near) + len(rest), "near": len(near),
+            "near_mean": mean(near) if near else 0.0, "rest_mean": mean(rest) if rest else 0.0,
+            "cost": mean(costs), "cost_near_as_final_set": mean(without), "by_start": by_start}
+
+
 def line(name: str, v: dict) -> str:
     return f"  {name:>14}: {v['mean']:+.2f} dB [{v['lo']:+.2f}, {v['hi']:+.2f}] ({v['scenes']} scenes, {v['pairs']} pairs)"
 
@@ -184,6 +224,15 @@ def main() -> None:
         print(line("all selectors", out["all selectors"]))
         print(f"  Done-when (mean <= {MEAN_BAR}, upper < {UPPER_BAR}, each selector <= {SELECTOR_BAR}): "
               f"{'met' if out['met'] else 'not met'}")
+        near = near_views(rows, finals)
+        if near:
+            out["near_views"] = near
+            print(f"  views nearer in the run than in its final-set (depth p10 < {near['ratio']}x): {near['near']} of "
+                  f"{near['views']}, run - final-set {near['near_mean']:+.2f} dB (the rest {near['rest_mean']:+.2f}); "
+                  f"mean cost over pairs {near['cost']:+.2f} dB, {near['cost_near_as_final_set']:+.2f} with the near "
+                  f"views at their final-set's PSNR")
+            for start, v in sorted(near["by_start"].items()):
+                print(f"    start {start}: {v['pairs']} pairs, cost {v['cost']:+.2f} dB, near views {v['near']} of {v['views']}")
         if base is not None:
             vs = against(rows, base, args.min_run_gain)
             out["against"] = {"base": str(args.against), **(vs or {})}

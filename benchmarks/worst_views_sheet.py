@@ -3,7 +3,11 @@
 seen, not only counted.
 
     python benchmarks/worst_views_sheet.py benchmarks/results/tune-full [--rank 0] [--out worst_views.png]
-        [--scenes a,b] [--arms active,active-r20] [--seeds 0]
+        [--scenes a,b] [--arms active,active-r20] [--seeds 0] [--near 0.8]
+
+`--near R` keeps only the worst views whose render depth (10th percentile over opaque pixels) is below R times the
+same view's in the run's final-set (`final-set/seed<k>.json` beside the run): views with something in front of the
+camera that the final-set has not.
 """
 
 from __future__ import annotations
@@ -22,9 +26,17 @@ from PIL import Image  # noqa: E402
 from hpgs_ns.atomic_write import atomic_path  # noqa: E402
 
 
-def entries(root: Path, rank: int, scenes=None, arms=None, seeds=None):
+def final_set_view(result: Path, name: str):
+    """The test view `name` in the final-set beside run `result` (a dict), or None."""
+    path = result.parent / "final-set" / result.name
+    if result.parent.name == "final-set" or not path.is_file():
+        return None
+    return next((v for v in json.loads(path.read_text()).get("test_views", []) if v["name"] == name), None)
+
+
+def entries(root: Path, rank: int, scenes=None, arms=None, seeds=None, near=None):
     """(title, image path) for every result under `root` (<scene>/<arm>/<selector>/seed<k>.json; None: any) that kept
-    a worst view of this rank, sorted by its PSNR."""
+    a worst view of this rank, sorted by its PSNR; with `near`, only views nearer than `near` x their final-set's."""
     found = []
     for result in sorted(root.rglob("seed*.json")):
         parts = result.relative_to(root).parts
@@ -42,6 +54,14 @@ def entries(root: Path, rank: int, scenes=None, arms=None, seeds=None):
         view = worst[rank]
         label = "/".join(result.relative_to(root).parts[:-1])
         title = f"{label} s{data['seed']}\n{Path(view['name']).name}: {view['psnr']:.1f} dB (mean {data['test']['psnr']:.1f})"
+        if near is not None:
+            mine = next((v for v in data.get("test_views", []) if v["name"] == view["name"]), {})
+            theirs = final_set_view(result, view["name"])
+            if not theirs or mine.get("depth_p10") is None or theirs.get("depth_p10") is None \
+                    or mine["depth_p10"] >= near * theirs["depth_p10"]:
+                continue
+            title += (f"; final-set {theirs['psnr']:.1f} dB\ndepth p10 {mine['depth_p10']:.2f} "
+                      f"(final-set {theirs['depth_p10']:.2f})")
         found.append((view["psnr"], title, result.parent / view["image"]))
     return [(title, path) for _, title, path in sorted(found)]
 
@@ -55,10 +75,13 @@ def main() -> None:
     parser.add_argument("--scenes", default="", help="comma-separated scene folders (default: all)")
     parser.add_argument("--arms", default="", help="comma-separated arm folders, the level under the scene (default: all)")
     parser.add_argument("--seeds", default="", help="comma-separated seeds (default: all)")
+    parser.add_argument("--near", type=float, default=None,
+                        help="only views whose depth p10 is below this times their final-set's (e.g. 0.8)")
     args = parser.parse_args()
     split = lambda text: [t for t in text.split(",") if t] or None  # noqa: E731
     seeds = split(args.seeds)
-    items = entries(args.root, args.rank, split(args.scenes), split(args.arms), seeds and [int(s) for s in seeds])
+    items = entries(args.root, args.rank, split(args.scenes), split(args.arms), seeds and [int(s) for s in seeds],
+                    args.near)
     if not items:
         raise SystemExit(f"no worst-view JPEGs under {args.root} (runs written by hpgs bench >= 0.4 keep them)")
     rows = math.ceil(len(items) / args.columns)

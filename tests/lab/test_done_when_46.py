@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import pytest
@@ -111,3 +112,31 @@ def test_final_sets_on_the_same_views_read_as_replicates_and_set_one_reference_f
     assert both["pairs"] == 2
     assert both["folder"] == pytest.approx(((19.5 - 19.0) + (21.25 - 20.0)) / 2)
     assert both["base"] == pytest.approx(((19.5 - 19.5) + (21.25 - 20.0)) / 2)
+
+
+def test_near_views_count_the_run_views_nearer_than_their_final_sets_and_what_they_cost(done_when):
+    from hpgs_lab.results import ViewMetrics
+
+    def pair(seed, run_views, final_views, start):
+        views = lambda vs: [ViewMetrics(f"t{i}", p, 0.5, 0.3, depth_p10=d, depth_median=2 * d)  # noqa: E731
+                            for i, (p, d) in enumerate(vs)]
+        run = make_result("s1", "fisherrf", "random", seed, sum(p for p, _ in run_views) / len(run_views), **VIEWS,
+                          test_views=views(run_views), seed_points=start)
+        final = make_result("s1", "fisherrf", "final-set", seed, sum(p for p, _ in final_views) / len(final_views),
+                            **VIEWS, test_views=views(final_views), final_set_of=SourceRun("random", seed, 0, ["v0", "v1"]))
+        return run, final
+
+    # seed 0: view t0 collapses with its depth at a tenth of the final-set's; t1 is a little nearer (0.9x: not near)
+    r0, f0 = pair(0, [(14.0, 0.1), (21.0, 0.9)], [(24.0, 1.0), (20.0, 1.0)], "active (random at step 0)")
+    # seed 1: no depth difference, the run 1 dB better on both views
+    r1, f1 = pair(1, [(21.0, 1.0), (21.0, 1.0)], [(20.0, 1.0), (20.0, 1.0)], "active")
+    out = done_when.near_views([r0, r1], [f0, f1])
+    assert (out["views"], out["near"]) == (4, 1)
+    assert out["near_mean"] == pytest.approx(-10.0) and out["rest_mean"] == pytest.approx(1.0)
+    # costs: seed 0 22 - 17.5 = +4.5, seed 1 -1.0; with t0 at its final-set's 24 dB seed 0's is -0.5
+    assert out["cost"] == pytest.approx(1.75) and out["cost_near_as_final_set"] == pytest.approx(-0.75)
+    assert out["by_start"]["active (random at step 0)"] == {"pairs": 1, "near": 1, "views": 2, "cost": pytest.approx(4.5)}
+    assert out["by_start"]["active"]["near"] == 0
+    # runs written before depths were recorded: nothing to say
+    bare = [dataclasses.replace(r, test_views=[dataclasses.replace(v, depth_p10=None) for v in r.test_views]) for r in (r0, r1)]
+    assert done_when.near_views(bare, [f0, f1]) == {}
