@@ -199,6 +199,8 @@ class RunResult:
     """Per test view metrics at the end (empty for runs that did not record them)."""
     num_gaussians: Optional[int] = None
     """The splat's size at the end (None in files written before it)."""
+    near_culled: Optional[int] = None
+    """Gaussians `--pipeline.model.near-cull-screen` removed over the run (None: the option was off)."""
     seed_points: Optional[str] = None
     """What the splat started from (`start_label`: the `--pipeline.datamanager.seed-points` mode as resolved, `auto`
     being colmap or active, or `random` where it gave no points); None in files written before it (see `start`)."""
@@ -257,6 +259,9 @@ class RunResult:
                 value = [{g.name: getattr(v, g.name) for g in fields(v)} for v in value]
             elif f.name == "test_views":  # the depths only where recorded: older results rewrite unchanged
                 value = [{g.name: getattr(v, g.name) for g in fields(v) if getattr(v, g.name) is not None} for v in value]
+            elif f.name == "near_culled":
+                if value is None:
+                    continue  # only runs with near-cull-screen on count it
             elif f.name == "final_set_of":
                 if value is None:
                     continue  # only final-set references have one
@@ -294,7 +299,8 @@ class RunResult:
                 timing=Timing(**_pick(Timing, data["timing"])),
                 **{k: data[k] for k in ("repeat", "smoke", "steps", "data", "dataparser", "num_test_views",
                                         "num_train_views", "num_views_final", "initial_views", "chosen_views",
-                                        "selection_work", "worst_views", "num_gaussians", "seed_points") if k in data},
+                                        "selection_work", "worst_views", "num_gaussians", "near_culled", "seed_points")
+                   if k in data},
                 psnr_per_round=[RoundPsnr(**_pick(RoundPsnr, p)) for p in data.get("psnr_per_round", [])],
                 psnr_at_round_steps={int(k): float(v) for k, v in (data.get("psnr_at_round_steps") or {}).items()},
                 test_views=[ViewMetrics(**_pick(ViewMetrics, v)) for v in data.get("test_views", [])],

@@ -605,6 +605,7 @@ def run_one(bench: Bench, job: Job, env: Optional[Dict[str, str]] = None, sweep:
         selection_work=summed_work(rounds),
         worst_views=worst_views,
         num_gaussians=metrics.get("num_gaussians"),
+        near_culled=metrics.get("near_culled"),
         seed_points=start_label(selected.seed_points, selected.random_start),
         initial_views=selected.initial,
         chosen_views=selected.chosen,

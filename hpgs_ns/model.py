@@ -34,7 +34,8 @@ from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.models import splatfacto
 from nerfstudio.models.splatfacto import SplatfactoModel, SplatfactoModelConfig
 
-from hpgs_ns.errors import UserError
+from hpgs_ns.errors import UserError, check_option
+from hpgs_ns.render.footprints import PinholeViews, near_and_large
 from hpgs_ns.render.pair_render import Splat
 from hpgs_ns.render.rasterize import composite, rasterize_splat
 from hpgs_ns.render.viewmats import world_to_camera
@@ -110,6 +111,26 @@ class HpgsSplatfactoModelConfig(SplatfactoModelConfig):
     restart at 11400, about 1/15 of the start rate). Every Gaussian ends at the final rate. Off: one schedule for
     all. Gaussians in view from the run's (or a restart's) first pass keep the shared schedule, so with no view
     added it barely acts."""
+    near_cull_screen: float = 0.0
+    """At each densification step (while densification runs), also remove the Gaussians that, seen from any camera
+    of the training split, the candidates' included (their poses, never their photos), lie nearer than
+    near-cull-depth x that camera's median depth and cover more than this fraction of its larger image side
+    (splatfacto's cull-screen-size measure, 0.15). Such Gaussians float in front of cameras no training view
+    looks through, where gsplat's own screen-size cull, which sees only the training view, cannot find them; in
+    runs that started from random points they darken the test views beside those cameras
+    (docs/lab/floater-guard-plan.md). 0: off."""
+    near_cull_depth: float = 0.25
+    """near-cull-screen's depth bound, as a fraction of each camera's median depth of the Gaussians in its image."""
+
+    def __post_init__(self) -> None:
+        parent = getattr(super(), "__post_init__", None)
+        if parent is not None:
+            parent()
+        flag = "--pipeline.model."
+        check_option(flag + "near-cull-screen", self.near_cull_screen, 0 <= self.near_cull_screen < 1,
+                     "must be at least 0 and below 1 (a fraction of the image's larger side)", "0 turns it off")
+        check_option(flag + "near-cull-depth", self.near_cull_depth, 0 < self.near_cull_depth <= 1,
+                     "must be above 0 and at most 1 (a fraction of each camera's median depth)")
 
 
 class HpgsSplatfactoModel(SplatfactoModel):
@@ -476,6 +497,40 @@ class HpgsSplatfactoModel(SplatfactoModel):
         if self.config.means_lr_by_age:
             self.scale_young_means_steps()
         super().step_post_backward(step - self.step_offset)
+        if self.config.near_cull_screen > 0 and self.is_refine_step():
+            self.cull_near_large()
+
+    # ---- Gaussians in front of cameras no training view looks through (near-cull-screen) ------------------------
+
+    near_cull_views: Optional[PinholeViews] = None
+    """The cameras near-cull-screen looks from: the training split's, active and candidate (the pipeline sets them)."""
+    near_culled: int = 0
+    """How many Gaussians near-cull-screen has removed in this run so far."""
+
+    def is_refine_step(self) -> bool:
+        """Whether gsplat's densification ran at this model step (its own test, on this model's clock)."""
+        strategy, step = self.strategy, self.step
+        return (strategy.refine_start_iter < step < strategy.refine_stop_iter and step % strategy.refine_every == 0)
+
+    @torch.no_grad()
+    def cull_near_large(self) -> int:
+        """near-cull-screen, now: remove the Gaussians `render.footprints.near_and_large` finds from `near_cull_views`
+        (gsplat's `remove`, which keeps the optimizers' and the strategy's rows in step). Returns how many."""
+        from gsplat.strategy.ops import remove  # pure PyTorch: safe on a CPU machine
+
+        if self.near_cull_views is None or self.num_points == 0:
+            return 0
+        mask = near_and_large(self.means.detach(), torch.exp(self.scales.detach()), self.near_cull_views,
+                              self.config.near_cull_screen, self.config.near_cull_depth)
+        count = int(mask.sum())
+        if count == 0 or count >= self.num_points:  # never the whole splat
+            return 0
+        remove(params=self.gauss_params, optimizers=self.optimizers, state=self.strategy_state, mask=mask)
+        self.near_culled += count
+        from nerfstudio.utils import writer
+
+        writer.put_scalar("train/near_culled", count, self.step + self.step_offset)
+        return count
 
     @torch.no_grad()
     def reset_to_initial(self, step: int, optimizers: Dict[str, torch.optim.Optimizer]) -> None:
@@ -504,7 +559,8 @@ class HpgsSplatfactoModel(SplatfactoModel):
         state: Dict[str, Any] = {"step_offset": int(self.step_offset), "refine_until": int(self.refine_until),
                                  "clock_scale": float(self.clock_scale),
                                  # how the splat started: a resume does not rebuild the start (seed-points active)
-                                 "random_start": bool(self.random_start), "view_points_start": bool(self.view_points_start)}
+                                 "random_start": bool(self.random_start), "view_points_start": bool(self.view_points_start),
+                                 "near_culled": int(self.near_culled)}
         if self.keep_initial_in_checkpoint:
             state["initial_gaussians"] = dict(self.initial_gaussians)
         # The densification strategy's running statistics (gradient sums, visibility counts since the last
@@ -514,6 +570,7 @@ class HpgsSplatfactoModel(SplatfactoModel):
 
     def set_extra_state(self, state: Dict[str, Any]) -> None:
         self.step_offset = int(state.get("step_offset", 0))
+        self.near_culled = int(state.get("near_culled", 0))
         if "random_start" in state:
             self.random_start = bool(state["random_start"])
             self.view_points_start = bool(state.get("view_points_start", False))

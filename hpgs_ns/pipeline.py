@@ -16,9 +16,11 @@ from typing import List, Optional, Type
 
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes
 from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineConfig
+from nerfstudio.utils.rich_utils import CONSOLE
 
 from hpgs_ns import compat
 from hpgs_ns.errors import OptionError
+from hpgs_ns.render.footprints import PinholeViews
 from hpgs_ns.selection.config import SelectionConfig
 from hpgs_ns.selection.rounds import SelectionRounds
 from hpgs_ns.selection.snapshots import Snapshots
@@ -70,6 +72,18 @@ class HpgsPipeline(VanillaPipeline):
             signature["means-lr-by-age"] = "True"
         if getattr(self.datamanager.config, "random_points", "cube") != "cube":  # restarts draw the splat's points again
             signature["random-points"] = str(self.datamanager.config.random_points)
+        near_cull = float(getattr(config.model, "near_cull_screen", 0.0))
+        if near_cull > 0:  # which Gaussians densification keeps
+            signature["near-cull"] = f"{near_cull:g} {float(config.model.near_cull_depth):g}"
+            if training:
+                self.model.near_cull_views = PinholeViews.from_cameras(self.datamanager.train_dataset.cameras, self.model.device)
+                CONSOLE.print(f"near-cull-screen {near_cull:g}: at each densification step, Gaussians nearer than "
+                              f"{config.model.near_cull_depth:g} x the median depth of any of the "
+                              f"{len(self.model.near_cull_views)} training-split cameras (poses only) and wider than "
+                              f"{near_cull:g} of its image are removed", soft_wrap=True)
+        elif training and float(getattr(config.model, "near_cull_depth", 0.25)) != 0.25:
+            CONSOLE.print("[yellow]--pipeline.model.near-cull-depth does nothing in this run: near-cull-screen is 0 "
+                          "(off); pass --pipeline.model.near-cull-screen 0.15 to turn the cull on", soft_wrap=True)
         self.datamanager.selection_signature = signature
         self.rounds: Optional[SelectionRounds] = selection.setup(datamanager=self.datamanager, model=self.model) if training else None
         self.snapshots: Optional[Snapshots] = Snapshots(selection.snapshot_every, self.datamanager, self.model) if training else None

@@ -413,7 +413,7 @@ def write_final_eval(trainer: Trainer, path: Path, worst_views: int = 0) -> Path
     """`ns-eval`'s output for the trainer's current weights (what `_after_train` saves as the final checkpoint),
     plus each test view's own metrics (`test_views`: name, psnr, ssim, lpips, and `view_depths`'s two depths, in
     the test split's order) and, with `worst_views`, JPEGs of the lowest-PSNR views beside `path` (`worst_views`:
-    name, psnr, image file name), and the splat's size (`num_gaussians`)."""
+    name, psnr, image file name), and the splat's size (`num_gaussians`; with near-cull-screen on, `near_culled`)."""
     pipeline = trainer.pipeline
     model = pipeline.model
     per_view: List[Dict[str, float]] = []
@@ -452,6 +452,8 @@ def write_final_eval(trainer: Trainer, path: Path, worst_views: int = 0) -> Path
         "worst_views": worst_saved,
         "num_gaussians": int(getattr(model, "num_points", 0)),
     }
+    if getattr(getattr(model, "config", None), "near_cull_screen", 0) > 0:
+        payload["near_culled"] = int(model.near_culled)
     return write_json_atomic(path, payload)
 
 

@@ -69,3 +69,12 @@ def test_a_bench_result_with_wrong_typed_fields_is_one_line(tmp_path, change, sa
     with pytest.raises(ResultError) as info:
         RunResult.from_json(path)
     assert one_line(info.value).startswith(f"{path}: ") and says in str(info.value)
+
+
+def test_the_near_cull_count_is_written_only_where_a_run_recorded_it(tmp_path):
+    from helpers import make_result
+
+    counted = make_result(near_culled=42)
+    assert RunResult.from_dict(json.loads(json.dumps(counted.to_dict()))).near_culled == 42
+    plain = make_result().to_dict()
+    assert "near_culled" not in plain and RunResult.from_dict(plain).near_culled is None

@@ -1,0 +1,76 @@
+"""Which Gaussians sit close in front of a camera and fill much of its image (`--pipeline.model.near-cull-screen`).
+
+gsplat's screen-size prune (splatfacto's `cull-screen-size`) measures a Gaussian's footprint in the view it is
+training on; a Gaussian floating just in front of a camera that never trains (a candidate view, or a test view
+beside one) is invisible to it. This measures the footprint in any cameras, from their poses alone, by projecting
+the Gaussians' centres: no rasterization (gsplat has no projection-only call that runs on CPU), so the footprint is
+gsplat's 3-sigma radius bounded by the largest axis, which is what a prune needs (it never underestimates).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from hpgs_ns.render.viewmats import world_to_camera
+
+NEAR_PLANE = 0.01
+"""gsplat's default near plane: Gaussians nearer than this are not drawn."""
+
+
+@dataclass(frozen=True)
+class PinholeViews:
+    """Cameras by pose and intrinsics only (no photos): world-to-camera [C, 4, 4] (OpenCV), fx, fy, cx, cy,
+    width, height [C]."""
+
+    viewmats: torch.Tensor
+    fx: torch.Tensor
+    fy: torch.Tensor
+    cx: torch.Tensor
+    cy: torch.Tensor
+    width: torch.Tensor
+    height: torch.Tensor
+
+    @classmethod
+    def from_cameras(cls, cameras, device=None) -> PinholeViews:
+        """From nerfstudio `Cameras` [C] (OpenGL camera-to-world poses)."""
+        def flat(t: torch.Tensor) -> torch.Tensor:
+            return t.reshape(-1).float().to(device)
+
+        return cls(world_to_camera(cameras.camera_to_worlds.float()).to(device), flat(cameras.fx), flat(cameras.fy),
+                   flat(cameras.cx), flat(cameras.cy), flat(cameras.width), flat(cameras.height))
+
+    def __len__(self) -> int:
+        return int(self.viewmats.shape[0])
+
+
+@torch.no_grad()
+def near_and_large(means: torch.Tensor, scales: torch.Tensor, views: PinholeViews, screen: float, depth: float,
+                   chunk: int = 16) -> torch.Tensor:
+    """[N] bool: the Gaussians (centres `means` [N, 3], world-space standard deviations `scales` [N, 3]) that, in at
+    least one of `views`, lie in front of the camera nearer than `depth` x the median depth of the centres that
+    project into its image (the camera's own scale, so no scene unit enters) and whose footprint reaches into the
+    image with a radius above `screen` x its larger side (gsplat's screen-size measure)."""
+    flagged = torch.zeros(means.shape[0], dtype=torch.bool, device=means.device)
+    if means.shape[0] == 0 or len(views) == 0:
+        return flagged
+    radius_world = 3.0 * scales.max(dim=-1).values  # gsplat's radius: 3 sigma of the largest axis
+    for start in range(0, len(views), chunk):
+        sl = slice(start, start + chunk)
+        vm = views.viewmats[sl].to(means.device)
+        p = torch.einsum("cij,nj->cni", vm[:, :3, :3], means) + vm[:, None, :3, 3]  # [C, N, 3] camera coordinates
+        z = p[..., 2]
+        front = z > NEAR_PLANE
+        zc = z.clamp(min=NEAR_PLANE)
+        fx, fy, cx, cy = (t[sl].to(means.device)[:, None] for t in (views.fx, views.fy, views.cx, views.cy))
+        w, h = (t[sl].to(means.device)[:, None] for t in (views.width, views.height))
+        u, v = fx * p[..., 0] / zc + cx, fy * p[..., 1] / zc + cy
+        r = torch.maximum(fx, fy) * radius_world[None, :] / zc
+        inside = front & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        reaches = front & (u > -r) & (u < w + r) & (v > -r) & (v < h + r)
+        typical = torch.where(inside, z, torch.full_like(z, float("nan"))).nanmedian(dim=1).values  # [C]
+        near = z < depth * typical[:, None]  # NaN (nothing in the image) compares False
+        large = r > screen * torch.maximum(w, h)
+        flagged |= (reaches & near & large).any(dim=0)
+    return flagged

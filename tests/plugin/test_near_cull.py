@@ -1,0 +1,122 @@
+"""`--pipeline.model.near-cull-screen`: Gaussians close in front of a training-split camera (active or candidate)
+and wide in its image are removed at densification steps (issue #46's floater guard)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from conftest import model_trainer
+from helpers import train_steps
+
+from hpgs_ns.errors import OptionError
+from hpgs_ns.render.footprints import PinholeViews, near_and_large
+
+
+def one_camera(width=100, height=80, f=100.0) -> PinholeViews:
+    """A camera at the origin looking down +z (OpenCV), principal point at the image centre."""
+    t = lambda v: torch.tensor([float(v)])  # noqa: E731
+    return PinholeViews(torch.eye(4)[None], t(f), t(f), t(width / 2), t(height / 2), t(width), t(height))
+
+
+def scene_with(extra_means, extra_scales):
+    """200 small Gaussians spread over the image at depth 4 (the camera's median), then `extra` rows."""
+    g = torch.Generator().manual_seed(0)
+    xy = (torch.rand(200, 2, generator=g) - 0.5) * 2.0  # within +-1 at z 4: inside the 100 x 80 image
+    means = torch.cat([torch.cat([xy, torch.full((200, 1), 4.0)], 1), torch.tensor(extra_means)])
+    scales = torch.cat([torch.full((200, 3), 0.01), torch.tensor(extra_scales)])
+    return means, scales
+
+
+def test_only_gaussians_both_near_and_wide_in_some_camera_are_flagged():
+    extra_means = [[0.0, 0.0, 0.3],    # near (0.3 < 0.25 x 4) and 3 x 0.05 x 100 / 0.3 = 50 px > 15: flagged
+                   [0.0, 0.0, 0.3],    # near but 1 px wide: kept
+                   [0.0, 0.0, 3.0],    # 3 x 0.5 x 100 / 3 = 50 px wide but at 3.0 > 1.0: kept (the background)
+                   [0.0, 0.0, -0.3],   # behind the camera: kept
+                   [2.0, 0.0, 0.3],    # centre at u = 717 px, 667 px beyond the edge; radius 50: out of view, kept
+                   [0.2, 0.0, 0.3]]    # centre at u = 117 px (outside), radius 50 reaches in: flagged
+    extra_scales = [[0.05] * 3, [0.001] * 3, [0.5] * 3, [0.05] * 3, [0.05] * 3, [0.05, 0.01, 0.01]]
+    means, scales = scene_with(extra_means, extra_scales)
+    flagged = near_and_large(means, scales, one_camera(), screen=0.15, depth=0.25)
+    assert flagged[:200].sum() == 0
+    assert flagged[200:].tolist() == [True, False, False, False, False, True]
+    # a wider bound keeps the 50-px one; a deeper bound (1.0 x 4 = 4 > 3) takes the background Gaussian too
+    assert near_and_large(means, scales, one_camera(), screen=0.6, depth=0.25)[200:].sum() == 0
+    assert near_and_large(means, scales, one_camera(), screen=0.15, depth=1.0)[202]
+
+
+def test_the_depth_bound_follows_each_cameras_own_scale():
+    # the same layout 10x larger (and every Gaussian 10x wider): the same rows flagged, no scene unit enters
+    means, scales = scene_with([[0.0, 0.0, 0.3], [0.0, 0.0, 3.0]], [[0.05] * 3, [0.5] * 3])
+    small = near_and_large(means, scales, one_camera(), 0.15, 0.25)
+    large = near_and_large(means * 10, scales * 10, one_camera(), 0.15, 0.25)
+    assert small.tolist() == large.tolist() and small[200] and not small[201]
+
+
+def test_a_second_camera_finds_what_the_first_cannot_see():
+    # camera 2 stands at z = 10 looking back down -z (rotated 180 degrees about y): the Gaussian at z 9.7 is 0.3 in
+    # front of it and wide, and behind-and-far for camera 1
+    means, scales = scene_with([[0.0, 0.0, 9.7]], [[0.05] * 3])
+    back = torch.eye(4)
+    back[:3, :3] = torch.diag(torch.tensor([-1.0, 1.0, -1.0]))
+    back[2, 3] = 10.0  # world z 10 -> camera z 0; world z 4 -> camera z 6
+    cam = one_camera()
+    two = PinholeViews(torch.stack([torch.eye(4), back]), *(torch.cat([t, t]) for t in
+                                                            (cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height)))
+    assert not near_and_large(means, scales, cam, 0.15, 0.25)[200]
+    assert near_and_large(means, scales, two, 0.15, 0.25)[200]
+
+
+def test_the_model_removes_the_flagged_rows_and_their_optimizer_state(tiny_scene, tmp_path):
+    trainer = model_trainer(tiny_scene, tmp_path, near_cull_screen=0.15)
+    model = trainer.pipeline.model
+    views = model.near_cull_views
+    assert views is not None and len(views) == len(trainer.pipeline.datamanager.train_dataset)  # active + candidates
+    train_steps(trainer, range(2))
+    n = model.num_points
+    already = int(near_and_large(model.means.detach(), torch.exp(model.scales.detach()), views, 0.15, 0.25).sum())
+    # a wide Gaussian just in front of the first training-split camera, and the Adam state it gets
+    c2w = trainer.pipeline.datamanager.train_dataset.cameras.camera_to_worlds[0]
+    floater = (c2w[:3, 3] - 0.05 * c2w[:3, 2]).to(model.means.device)  # 0.05 along the camera's view (OpenGL -z)
+    model.add_gaussians(floater[None], torch.full((1, 3), 200, dtype=torch.uint8), trainer.optimizers)
+    with torch.no_grad():
+        model.gauss_params["scales"][-1] = torch.log(torch.tensor(0.05))
+    assert model.num_points == n + 1
+    removed = model.cull_near_large()
+    assert removed == already + 1 and model.near_culled == removed and model.num_points == n + 1 - removed
+    assert not any(torch.allclose(m, floater) for m in model.means.detach())
+    for name, param in model.gauss_params.items():  # optimizer state rows follow the parameters
+        state = trainer.optimizers.optimizers[name].state[param]
+        assert param.shape[0] == model.num_points and state["exp_avg"].shape[0] == model.num_points
+    assert model.get_extra_state()["near_culled"] == removed
+
+
+def test_training_culls_at_densification_steps_only_and_not_when_off(tiny_scene, tmp_path):
+    for on in (True, False):
+        trainer = model_trainer(tiny_scene, tmp_path / str(on), near_cull_screen=0.15 if on else 0.0)
+        model = trainer.pipeline.model
+        assert (model.near_cull_views is not None) == on
+        calls = []
+        model.cull_near_large = lambda calls=calls, model=model: calls.append(model.step) or 0
+        model.strategy.refine_start_iter, model.strategy.refine_every = 2, 3  # densify at steps 3, 6, 9
+        train_steps(trainer, range(11))
+        assert calls == ([3, 6, 9] if on else [])
+
+
+@pytest.mark.parametrize("flag, value", [("near_cull_screen", -0.1), ("near_cull_screen", 1.0), ("near_cull_depth", 0.0)])
+def test_values_that_make_no_sense_are_one_line_errors(flag, value):
+    from hpgs_ns.model import HpgsSplatfactoModelConfig
+
+    with pytest.raises(OptionError, match="--pipeline.model." + flag.replace("_", "-")):
+        HpgsSplatfactoModelConfig(**{flag: value})
+
+
+def test_the_final_eval_records_the_count_only_when_the_cull_is_on(tiny_scene, tmp_path):
+    import json
+
+    from hpgs_ns.trainer import write_final_eval
+
+    for on in (True, False):
+        trainer = model_trainer(tiny_scene, tmp_path / str(on), near_cull_screen=0.15 if on else 0.0)
+        trainer.pipeline.model.near_culled = 7 if on else 0
+        data = json.loads(write_final_eval(trainer, tmp_path / f"eval-{on}.json").read_text())
+        assert data.get("near_culled") == (7 if on else None)
