@@ -199,6 +199,16 @@ def near_views(rows: Sequence[RunResult], final_sets: Sequence[RunResult], ratio
             "cost": mean(costs), "cost_near_as_final_set": mean(without), "by_start": by_start}
 
 
+def culled_counts(rows: Sequence[RunResult], final_sets: Sequence[RunResult]) -> Dict[str, dict]:
+    """`near_culled` (Gaussians near-cull-screen removed) over the runs and over the final-sets that recorded it."""
+    out = {}
+    for name, results in (("runs", rows), ("final-sets", final_sets)):
+        counts = [r.near_culled for r in results if r.near_culled is not None]
+        if counts:
+            out[name] = {"mean": mean(counts), "min": min(counts), "max": max(counts), "runs": len(counts)}
+    return out
+
+
 def line(name: str, v: dict) -> str:
     return f"  {name:>14}: {v['mean']:+.2f} dB [{v['lo']:+.2f}, {v['hi']:+.2f}] ({v['scenes']} scenes, {v['pairs']} pairs)"
 
@@ -233,6 +243,11 @@ def main() -> None:
                   f"views at their final-set's PSNR")
             for start, v in sorted(near["by_start"].items()):
                 print(f"    start {start}: {v['pairs']} pairs, cost {v['cost']:+.2f} dB, near views {v['near']} of {v['views']}")
+        culled = culled_counts(rows, finals)
+        if culled:
+            out["near_culled"] = culled
+            print("  near-cull-screen removed, mean per run: " + "; ".join(
+                f"{k} {v['mean']:.0f} (range {v['min']}-{v['max']}, {v['runs']} runs)" for k, v in culled.items()))
         if base is not None:
             vs = against(rows, base, args.min_run_gain)
             out["against"] = {"base": str(args.against), **(vs or {})}

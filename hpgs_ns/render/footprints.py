@@ -47,7 +47,7 @@ class PinholeViews:
 
 @torch.no_grad()
 def near_and_large(means: torch.Tensor, scales: torch.Tensor, views: PinholeViews, screen: float, depth: float,
-                   chunk: int = 16) -> torch.Tensor:
+                   chunk: int = 8) -> torch.Tensor:
     """[N] bool: the Gaussians (centres `means` [N, 3], world-space standard deviations `scales` [N, 3]) that, in at
     least one of `views`, lie in front of the camera nearer than `depth` x the median depth of the centres that
     project into its image (the camera's own scale, so no scene unit enters) and whose footprint reaches into the

@@ -140,3 +140,11 @@ def test_near_views_count_the_run_views_nearer_than_their_final_sets_and_what_th
     # runs written before depths were recorded: nothing to say
     bare = [dataclasses.replace(r, test_views=[dataclasses.replace(v, depth_p10=None) for v in r.test_views]) for r in (r0, r1)]
     assert done_when.near_views(bare, [f0, f1]) == {}
+
+
+def test_near_culled_counts_runs_and_final_sets_apart(done_when):
+    runs = [make_result("s1", "fisherrf", "random", k, 20.0, near_culled=c) for k, c in enumerate((10, 30))]
+    finals = [make_result("s1", "fisherrf", "final-set", 0, 20.0, near_culled=4), make_result("s2", "fisherrf", "final-set", 0, 20.0)]
+    out = done_when.culled_counts(runs, finals)
+    assert out == {"runs": {"mean": 20, "min": 10, "max": 30, "runs": 2}, "final-sets": {"mean": 4, "min": 4, "max": 4, "runs": 1}}
+    assert done_when.culled_counts([make_result()], []) == {}
