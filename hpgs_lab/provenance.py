@@ -37,7 +37,8 @@ PARSE_LOCK = threading.RLock()
 CODE_FILES = (
     "cpu_raster.py", "datamanager.py", "dataparser.py", "image_files.py", "metrics.py", "method_config.py", "model.py",
     "offline_weights.py", "pipeline.py", "schedules.py", "trainer.py",
-    "render/pair_render.py", "render/rasterize.py", "render/viewmats.py", "scenes/colmap_model.py", "scenes/error_points.py",
+    "render/footprints.py", "render/pair_render.py", "render/rasterize.py", "render/viewmats.py",
+    "scenes/colmap_model.py", "scenes/error_points.py",
     "scenes/synthetic.py", "scenes/triangulate.py", "scenes/view_points.py", "selection/after_add.py", "selection/config.py",
     "selection/early_stop.py",
     "selection/records.py", "selection/rounds.py", "selection/schedule.py", "selection/snapshots.py",
