@@ -35,7 +35,7 @@ from nerfstudio.models import splatfacto
 from nerfstudio.models.splatfacto import SplatfactoModel, SplatfactoModelConfig
 
 from hpgs_ns.errors import UserError, check_option
-from hpgs_ns.render.footprints import PinholeViews, near_and_large
+from hpgs_ns.render.footprints import PinholeViews, near_and_large, off_every_surface
 from hpgs_ns.render.pair_render import Splat
 from hpgs_ns.render.rasterize import composite, rasterize_splat
 from hpgs_ns.render.viewmats import world_to_camera
@@ -115,7 +115,8 @@ class HpgsSplatfactoModelConfig(SplatfactoModelConfig):
     """At each densification step (while densification runs), also remove the Gaussians that, seen from any camera
     of the training split, the candidates' included (their poses, never their photos), lie nearer than
     near-cull-depth x that camera's median depth and cover more than this fraction of its larger image side
-    (splatfacto's cull-screen-size measure, 0.15). Such Gaussians float in front of cameras no training view
+    (splatfacto's cull-screen-size measure, 0.15), unless an active training view renders them on its surface (a
+    wall beside a candidate camera that the training views see stays). Such Gaussians float in front of cameras no training view
     looks through, where gsplat's own screen-size cull, which sees only the training view, cannot find them; in
     runs that started from random points they darken the test views beside those cameras
     (docs/lab/floater-guard-plan.md). 0: off."""
@@ -504,6 +505,10 @@ class HpgsSplatfactoModel(SplatfactoModel):
 
     near_cull_views: Optional[PinholeViews] = None
     """The cameras near-cull-screen looks from: the training split's, active and candidate (the pipeline sets them)."""
+    near_cull_training: Optional[Callable[[], Cameras]] = None
+    """The active training views' cameras now (the pipeline sets it): what near-cull-screen checks surfaces in."""
+    near_cull_render_short_side: int = 160
+    """The size (short side, pixels) the training views are rendered at for that check."""
     near_culled: int = 0
     """How many Gaussians near-cull-screen has removed in this run so far."""
 
@@ -513,15 +518,36 @@ class HpgsSplatfactoModel(SplatfactoModel):
         return (strategy.refine_start_iter < step < strategy.refine_stop_iter and step % strategy.refine_every == 0)
 
     @torch.no_grad()
+    def training_surfaces(self) -> Tuple[PinholeViews, List[torch.Tensor], List[torch.Tensor]]:
+        """The active training views rendered (eval mode, short side at most `near_cull_render_short_side`): their
+        cameras at that size, expected depths and opacities ([H, W] each)."""
+        cameras = copy.deepcopy(self.near_cull_training())
+        short = torch.minimum(cameras.width, cameras.height).float()
+        cameras.rescale_output_resolution(torch.clamp(self.near_cull_render_short_side / short, max=1.0))
+        depths, alphas = [], []
+        for k in range(cameras.shape[0]):
+            _, render, alpha = self._eval_render(cameras[k : k + 1], "RGB+ED")
+            depths.append(render[0, ..., 3])
+            alphas.append(alpha[0, ..., 0])
+        return PinholeViews.from_cameras(cameras, self.means.device), depths, alphas
+
+    @torch.no_grad()
     def cull_near_large(self) -> int:
         """near-cull-screen, now: remove the Gaussians `render.footprints.near_and_large` finds from `near_cull_views`
-        (gsplat's `remove`, which keeps the optimizers' and the strategy's rows in step). Returns how many."""
+        that no active training view shows on its rendered surface (`off_every_surface`: a wall beside a candidate
+        camera, which the training views see, stays; a Gaussian hanging in space they see through, or that none of
+        them sees, goes). gsplat's `remove` keeps the optimizers' and the strategy's rows in step. Returns how many."""
         from gsplat.strategy.ops import remove  # pure PyTorch: safe on a CPU machine
 
         if self.near_cull_views is None or self.num_points == 0:
             return 0
-        mask = near_and_large(self.means.detach(), torch.exp(self.scales.detach()), self.near_cull_views,
+        means = self.means.detach()
+        mask = near_and_large(means, torch.exp(self.scales.detach()), self.near_cull_views,
                               self.config.near_cull_screen, self.config.near_cull_depth)
+        if bool(mask.any()) and self.near_cull_training is not None:
+            views, depths, alphas = self.training_surfaces()
+            picked = mask.nonzero().squeeze(1)
+            mask[picked] = off_every_surface(means[picked], views, depths, alphas)
         count = int(mask.sum())
         if count == 0 or count >= self.num_points:  # never the whole splat
             return 0

@@ -14,6 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import List, Optional, Type
 
+import torch
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes
 from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineConfig
 from nerfstudio.utils.rich_utils import CONSOLE
@@ -76,11 +77,14 @@ class HpgsPipeline(VanillaPipeline):
         if near_cull > 0:  # which Gaussians densification keeps
             signature["near-cull"] = f"{near_cull:g} {float(config.model.near_cull_depth):g}"
             if training:
-                self.model.near_cull_views = PinholeViews.from_cameras(self.datamanager.train_dataset.cameras, self.model.device)
+                dm = self.datamanager
+                self.model.near_cull_views = PinholeViews.from_cameras(dm.train_dataset.cameras, self.model.device)
+                self.model.near_cull_training = lambda: dm.train_dataset.cameras[torch.tensor(dm.active, dtype=torch.long)]
                 CONSOLE.print(f"near-cull-screen {near_cull:g}: at each densification step, Gaussians nearer than "
                               f"{config.model.near_cull_depth:g} x the median depth of any of the "
                               f"{len(self.model.near_cull_views)} training-split cameras (poses only) and wider than "
-                              f"{near_cull:g} of its image are removed", soft_wrap=True)
+                              f"{near_cull:g} of its image are removed unless a training view shows them on its "
+                              "surface", soft_wrap=True)
         elif training and float(getattr(config.model, "near_cull_depth", 0.25)) != 0.25:
             CONSOLE.print("[yellow]--pipeline.model.near-cull-depth does nothing in this run: near-cull-screen is 0 "
                           "(off); pass --pipeline.model.near-cull-screen 0.15 to turn the cull on", soft_wrap=True)

@@ -74,3 +74,32 @@ def near_and_large(means: torch.Tensor, scales: torch.Tensor, views: PinholeView
         large = r > screen * torch.maximum(w, h)
         flagged |= (reaches & near & large).any(dim=0)
     return flagged
+
+
+SURFACE_TOLERANCE = 0.2
+"""How much nearer than a view's rendered surface (as a fraction of its depth) a centre must lie to be off it: the
+expected depth blends surfaces at edges, so a centre within this of it counts as on the surface."""
+
+
+@torch.no_grad()
+def off_every_surface(means: torch.Tensor, views: PinholeViews, depths, alphas) -> torch.Tensor:
+    """[N] bool: the centres `means` [N, 3] that no view of `views` shows on its rendered surface (`depths[k]`,
+    `alphas[k]`: view k's expected depth and opacity, [H, W] at that view's size). A centre is on view k's surface
+    where it falls in k's image, over a pixel at least half opaque, within SURFACE_TOLERANCE of that pixel's depth
+    (in front of it: k sees through it; behind it: k cannot see it). True also where no view's image holds it."""
+    off = torch.ones(means.shape[0], dtype=torch.bool, device=means.device)
+    for k in range(len(views)):
+        vm = views.viewmats[k].to(means.device)
+        p = means @ vm[:3, :3].T + vm[:3, 3]
+        z = p[:, 2]
+        front = z > NEAR_PLANE
+        zc = z.clamp(min=NEAR_PLANE)
+        u = (views.fx[k] * p[:, 0] / zc + views.cx[k]).floor().long()
+        v = (views.fy[k] * p[:, 1] / zc + views.cy[k]).floor().long()
+        depth, alpha = depths[k].to(means.device), alphas[k].to(means.device)
+        inside = front & (u >= 0) & (u < depth.shape[1]) & (v >= 0) & (v < depth.shape[0])
+        ui, vi = u.clamp(0, depth.shape[1] - 1), v.clamp(0, depth.shape[0] - 1)
+        surface, opaque = depth[vi, ui], alpha[vi, ui] >= 0.5
+        on = inside & opaque & ((z - surface).abs() <= SURFACE_TOLERANCE * surface)
+        off &= ~on
+    return off

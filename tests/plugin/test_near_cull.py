@@ -66,28 +66,56 @@ def test_a_second_camera_finds_what_the_first_cannot_see():
     assert near_and_large(means, scales, two, 0.15, 0.25)[200]
 
 
-def test_the_model_removes_the_flagged_rows_and_their_optimizer_state(tiny_scene, tmp_path):
+def test_the_model_removes_what_is_near_wide_and_on_no_training_surface_with_its_optimizer_rows(tiny_scene, tmp_path):
+    from hpgs_ns.render.footprints import off_every_surface
+
     trainer = model_trainer(tiny_scene, tmp_path, near_cull_screen=0.15)
-    model = trainer.pipeline.model
+    model, dm = trainer.pipeline.model, trainer.pipeline.datamanager
     views = model.near_cull_views
-    assert views is not None and len(views) == len(trainer.pipeline.datamanager.train_dataset)  # active + candidates
+    assert views is not None and len(views) == len(dm.train_dataset)  # active + candidates
     train_steps(trainer, range(2))
-    n = model.num_points
-    already = int(near_and_large(model.means.detach(), torch.exp(model.scales.detach()), views, 0.15, 0.25).sum())
-    # a wide Gaussian just in front of the first training-split camera, and the Adam state it gets
-    c2w = trainer.pipeline.datamanager.train_dataset.cameras.camera_to_worlds[0]
-    floater = (c2w[:3, 3] - 0.05 * c2w[:3, 2]).to(model.means.device)  # 0.05 along the camera's view (OpenGL -z)
+    # a wide, faint Gaussian just in front of a candidate camera that the training views see through (the first
+    # candidate whose spot lies on no training view's rendered surface: the ring's points come near some cameras)
+    surfaces = model.training_surfaces()
+    assert len(surfaces[0]) == len(dm.active) and max(d.shape[0] for d in surfaces[1]) <= 48  # the 6 active views
+    c2w = dm.train_dataset.cameras.camera_to_worlds
+    spots = torch.stack([c2w[c, :3, 3] - 0.05 * c2w[c, :3, 2] for c in dm.candidates]).to(model.means.device)
+    floater = spots[off_every_surface(spots, *surfaces)][0]  # 0.05 along a candidate's view (OpenGL -z)
     model.add_gaussians(floater[None], torch.full((1, 3), 200, dtype=torch.uint8), trainer.optimizers)
     with torch.no_grad():
         model.gauss_params["scales"][-1] = torch.log(torch.tensor(0.05))
-    assert model.num_points == n + 1
+        model.gauss_params["opacities"][-1] = torch.logit(torch.tensor(0.02))
+    n, means = model.num_points, model.means.detach().clone()
+    near = near_and_large(means, torch.exp(model.scales.detach()), views, 0.15, 0.25)
+    off = off_every_surface(means, *model.training_surfaces())
+    assert near[-1] and off[-1]  # the floater: near and wide before the candidate, on no training surface
+    assert (near & ~off).any()  # some near-and-wide Gaussians are on a training view's surface: they stay
     removed = model.cull_near_large()
-    assert removed == already + 1 and model.near_culled == removed and model.num_points == n + 1 - removed
-    assert not any(torch.allclose(m, floater) for m in model.means.detach())
+    assert removed == int((near & off).sum()) and model.near_culled == removed and model.num_points == n - removed
+    assert torch.equal(model.means.detach(), means[~(near & off)])
     for name, param in model.gauss_params.items():  # optimizer state rows follow the parameters
         state = trainer.optimizers.optimizers[name].state[param]
         assert param.shape[0] == model.num_points and state["exp_avg"].shape[0] == model.num_points
     assert model.get_extra_state()["near_culled"] == removed
+
+
+def test_a_centre_is_on_a_surface_only_where_a_view_renders_it_there():
+    from hpgs_ns.render.footprints import SURFACE_TOLERANCE, off_every_surface
+
+    cam = one_camera(width=10, height=8, f=10.0)
+    depth, alpha = torch.full((8, 10), 4.0), torch.ones(8, 10)
+    alpha[:, :2] = 0.0  # the two left columns render nothing
+    means = torch.tensor([[0.0, 0.0, 4.0],    # on the surface: kept
+                          [0.0, 0.0, 5.0],    # behind it: the view cannot see it there, off
+                          [0.0, 0.0, 4.0 * (1 - SURFACE_TOLERANCE) - 0.1],  # clearly in front: off
+                          [-1.5, 0.0, 4.0],   # u = 1.25: over a transparent pixel: off
+                          [0.0, 0.0, -1.0]])  # behind the camera, in no view: off
+    assert off_every_surface(means, cam, [depth], [alpha]).tolist() == [False, True, True, True, True]
+    # a second view that shows the third centre on its surface keeps it
+    near = torch.full((8, 10), 4.0 * (1 - SURFACE_TOLERANCE) - 0.1)
+    two = PinholeViews(torch.stack([cam.viewmats[0]] * 2), *(torch.cat([t, t]) for t in
+                                                             (cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height)))
+    assert off_every_surface(means, two, [depth, near], [alpha, torch.ones(8, 10)]).tolist()[2] is False
 
 
 def test_training_culls_at_densification_steps_only_and_not_when_off(tiny_scene, tmp_path):
