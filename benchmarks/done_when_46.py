@@ -169,7 +169,7 @@ def near_views(rows: Sequence[RunResult], final_sets: Sequence[RunResult], ratio
     nearer in the run (depth_p10 below `ratio` x the final-set's), their mean run - final-set PSNR, the rest's, and
     the mean cost over pairs as recorded and as it would be with the near views at their final-set's PSNR; also per
     start (`seed_points`)."""
-    near, rest, by_start, costs, without = [], [], {}, [], []
+    near, rest, by_start, without = [], [], {}, []
     for pair in schedule_pairs(rows, final_sets)[0]:
         final_view = {v.name: v for v in pair.final.test_views}
         start = by_start.setdefault(pair.run.seed_points or "unknown", {"pairs": 0, "near": 0, "views": 0, "cost": []})
@@ -188,10 +188,10 @@ def near_views(rows: Sequence[RunResult], final_sets: Sequence[RunResult], ratio
             start["pairs"] += 1
             cost = pair.final.test.psnr - pair.run.test.psnr
             start["cost"].append(cost)
-            costs.append(cost)
             without.append(cost - lost / len(pair.run.test_views))
     if not near and not rest:
         return {}
+    costs = [c for v in by_start.values() for c in v["cost"]]
     by_start = {k: {"pairs": v["pairs"], "near": v["near"], "views": v["views"], "cost": mean(v["cost"])}
                 for k, v in by_start.items() if v["pairs"]}
     return {"ratio": ratio, "views": len(near) + len(rest), "near": len(near),

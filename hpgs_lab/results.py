@@ -251,6 +251,8 @@ class RunResult:
         out: Dict[str, Any] = {"version": VERSION}
         for f in fields(self):
             value = getattr(self, f.name)
+            if value is None and f.name in WRITTEN_WHEN_SET:
+                continue
             if f.name == "psnr_at_round_steps":
                 value = {str(k): v for k, v in value.items()}  # JSON keys are strings
             elif f.name in ("test", "timing", "provenance"):
@@ -259,12 +261,7 @@ class RunResult:
                 value = [{g.name: getattr(v, g.name) for g in fields(v)} for v in value]
             elif f.name == "test_views":  # the depths only where recorded: older results rewrite unchanged
                 value = [{g.name: getattr(v, g.name) for g in fields(v) if getattr(v, g.name) is not None} for v in value]
-            elif f.name == "near_culled":
-                if value is None:
-                    continue  # only runs with near-cull-screen on count it
             elif f.name == "final_set_of":
-                if value is None:
-                    continue  # only final-set references have one
                 value = {g.name: getattr(value, g.name) for g in fields(value)}
             out[f.name] = value
         return out
@@ -334,6 +331,9 @@ def start_label(mode: Optional[str], random_start: bool) -> Optional[str]:
 
 
 # Fields whose type the report relies on (bool is an int: a seed of `true` is refused by the check on str too).
+# Fields written only where set: only final-set references have a source run, only near-cull-screen runs a count.
+WRITTEN_WHEN_SET = ("final_set_of", "near_culled")
+
 RESULT_TYPES = {"scene": str, "protocol": str, "selector": str, "seed": int, "test": Mapping, "timing": Mapping,
                 "provenance": Mapping, "psnr_per_round": list, "test_views": list, "initial_views": list,
                 "chosen_views": list}

@@ -10,6 +10,7 @@ gsplat's 3-sigma radius bounded by the largest axis, which is what a prune needs
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Tuple
 
 import torch
 
@@ -44,6 +45,16 @@ class PinholeViews:
     def __len__(self) -> int:
         return int(self.viewmats.shape[0])
 
+    def pixels(self, means: torch.Tensor, cameras: slice) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Centres `means` [N, 3] in these `cameras`: (z, u, v), each [C, N]: depth along each view and pixel
+        position (u, v computed with z clamped to the near plane)."""
+        vm = self.viewmats[cameras].to(means.device)
+        fx, fy, cx, cy = (t[cameras].to(means.device)[:, None] for t in (self.fx, self.fy, self.cx, self.cy))
+        p = torch.einsum("cij,nj->cni", vm[:, :3, :3], means) + vm[:, None, :3, 3]
+        z = p[..., 2]
+        zc = z.clamp(min=NEAR_PLANE)
+        return z, fx * p[..., 0] / zc + cx, fy * p[..., 1] / zc + cy
+
 
 @torch.no_grad()
 def near_and_large(means: torch.Tensor, scales: torch.Tensor, views: PinholeViews, screen: float, depth: float,
@@ -58,15 +69,10 @@ def near_and_large(means: torch.Tensor, scales: torch.Tensor, views: PinholeView
     radius_world = 3.0 * scales.max(dim=-1).values  # gsplat's radius: 3 sigma of the largest axis
     for start in range(0, len(views), chunk):
         sl = slice(start, start + chunk)
-        vm = views.viewmats[sl].to(means.device)
-        p = torch.einsum("cij,nj->cni", vm[:, :3, :3], means) + vm[:, None, :3, 3]  # [C, N, 3] camera coordinates
-        z = p[..., 2]
+        fx, fy, w, h = (t[sl].to(means.device)[:, None] for t in (views.fx, views.fy, views.width, views.height))
+        z, u, v = views.pixels(means, sl)
         front = z > NEAR_PLANE
-        zc = z.clamp(min=NEAR_PLANE)
-        fx, fy, cx, cy = (t[sl].to(means.device)[:, None] for t in (views.fx, views.fy, views.cx, views.cy))
-        w, h = (t[sl].to(means.device)[:, None] for t in (views.width, views.height))
-        u, v = fx * p[..., 0] / zc + cx, fy * p[..., 1] / zc + cy
-        r = torch.maximum(fx, fy) * radius_world[None, :] / zc
+        r = torch.maximum(fx, fy) * radius_world[None, :] / z.clamp(min=NEAR_PLANE)
         inside = front & (u >= 0) & (u < w) & (v >= 0) & (v < h)
         reaches = front & (u > -r) & (u < w + r) & (v > -r) & (v < h + r)
         typical = torch.where(inside, z, torch.full_like(z, float("nan"))).nanmedian(dim=1).values  # [C]
@@ -89,13 +95,9 @@ def off_every_surface(means: torch.Tensor, views: PinholeViews, depths, alphas) 
     (in front of it: k sees through it; behind it: k cannot see it). True also where no view's image holds it."""
     off = torch.ones(means.shape[0], dtype=torch.bool, device=means.device)
     for k in range(len(views)):
-        vm = views.viewmats[k].to(means.device)
-        p = means @ vm[:3, :3].T + vm[:3, 3]
-        z = p[:, 2]
+        z, u, v = (t[0] for t in views.pixels(means, slice(k, k + 1)))
         front = z > NEAR_PLANE
-        zc = z.clamp(min=NEAR_PLANE)
-        u = (views.fx[k] * p[:, 0] / zc + views.cx[k]).floor().long()
-        v = (views.fy[k] * p[:, 1] / zc + views.cy[k]).floor().long()
+        u, v = u.floor().long(), v.floor().long()
         depth, alpha = depths[k].to(means.device), alphas[k].to(means.device)
         inside = front & (u >= 0) & (u < depth.shape[1]) & (v >= 0) & (v < depth.shape[0])
         ui, vi = u.clamp(0, depth.shape[1] - 1), v.clamp(0, depth.shape[0] - 1)
