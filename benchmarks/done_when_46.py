@@ -10,7 +10,8 @@ With `--against BASE` (the trainer a mechanism is judged against, e.g. `benchmar
 PSNR FOLDER - BASE paired by (scene, selector, seed), on the pairs whose runs differ (a run copied from BASE, as fox
 in docs/lab/seeded-restarts-judge-plan.md, is left out: the mechanism did not touch it), its bar `--min-run-gain`
 (-0.2 dB), and the mean run wall of each, whose ratio is read against the lease loads (#46's guard: at most +10%);
-with `--also-over SCENE ...`, the run PSNR gain again over those scenes alone (a pilot rule's subset); per
+with `--also-over SCENE ...`, the run PSNR gain again over those scenes alone (a pilot rule's subset); the
+schedule cost FOLDER - BASE paired by run, with its interval (what a rule comparing two arms' costs reads); per
 selector, the run and final-set PSNR gains apart; and the final-sets both folders trained on the same views
 (`random`'s and `farthest`'s, whose views do not depend on training): where a mechanism does not act on final-sets
 these are replicates, so their difference is the trainer's run-to-run noise, and each selector's cost is given
@@ -83,6 +84,21 @@ def against(rows: Sequence[RunResult], base: Sequence[RunResult], min_gain: floa
     wall = {k: mean(v) for k, v in walls.items()}
     return {"run_gain": gain, "min_run_gain": min_gain, "run_gain_met": bool(gain["mean"] >= min_gain),
             "mean_wall_s": wall, "wall_ratio": wall["folder"] / wall["base"]}
+
+
+def cost_difference(rows: Sequence[RunResult], base: Sequence[RunResult], final_sets: Sequence[RunResult],
+                    base_final_sets: Sequence[RunResult]) -> Optional[dict]:
+    """Schedule cost FOLDER - BASE, each run against its own final-set, paired by (scene, selector, seed): a pilot
+    rule that compares two arms' costs reads this interval, not the two means alone."""
+    base_cost = {(p.run.scene, p.run.selector, p.run.seed): p.final.test.psnr - p.run.test.psnr
+                 for p in schedule_pairs(base, base_final_sets)[0]}
+    gains: stats.Gains = {}
+    for pair in schedule_pairs(rows, final_sets)[0]:
+        b = base_cost.get((pair.run.scene, pair.run.selector, pair.run.seed))
+        if b is not None:
+            cell = gains.setdefault(pair.run.scene, {})
+            cell[len(cell)] = pair.final.test.psnr - pair.run.test.psnr - b
+    return interval(gains) if gains else None
 
 
 def selector_gains(rows: Sequence[RunResult], base: Sequence[RunResult], final_sets: Sequence[RunResult],
@@ -266,6 +282,11 @@ def main() -> None:
                               f"p {g['p']:.3f} ({g['pairs']} pairs)")
             else:
                 print(f"  no run here differs from one in {args.against}")
+            diff = cost_difference(rows, base, finals, base_finals)
+            if diff:
+                out["against"]["cost_difference"] = diff
+                print(f"  schedule cost - {args.against}'s, paired by run: {diff['mean']:+.2f} dB [{diff['lo']:+.2f}, "
+                      f"{diff['hi']:+.2f}], p {diff['p']:.3f} ({diff['pairs']} pairs)")
             per = selector_gains(rows, base, finals, base_finals)
             out["against"]["by_selector"] = per
             for selector, parts in sorted(per.items()):

@@ -82,6 +82,16 @@ def test_run_and_final_set_gains_per_selector(done_when, tmp_path):
     assert per["hpgs"]["final_set"]["mean"] == pytest.approx(0.5) and per["hpgs"]["final_set"]["pairs"] == 6
 
 
+def test_cost_difference_pairs_each_run_with_its_base_run(done_when, tmp_path):
+    base_dir = folder(tmp_path / "base", {"random": 0.5, "hpgs": 0.3}, run_psnr=20.0)
+    arm_dir = folder(tmp_path / "arm", {"random": 0.2, "hpgs": 0.4}, run_psnr=19.0, scenes=SCENES[:2])
+    diff = done_when.cost_difference(done_when.runs_of(arm_dir), done_when.runs_of(base_dir),
+                                     load_final_sets(arm_dir), load_final_sets(base_dir))
+    # per scene: random -0.3, hpgs +0.1 (two seeds each), the run PSNR itself does not enter
+    assert diff["mean"] == pytest.approx(-0.1) and diff["pairs"] == 8 and diff["scenes"] == 2
+    assert done_when.cost_difference(done_when.runs_of(arm_dir), [], load_final_sets(arm_dir), []) is None
+
+
 def test_final_sets_on_the_same_views_read_as_replicates_and_set_one_reference_for_both_costs(done_when, tmp_path):
     from hpgs_lab.results import ViewMetrics
 
