@@ -17,7 +17,9 @@ selector, the run and final-set PSNR gains apart; and the final-sets both folder
 these are replicates, so their difference is the trainer's run-to-run noise, and each selector's cost is given
 again against the mean of both (read beside the cost, not bars). Where the runs recorded each test view's render depth,
 also the views nearer in the run than in its final-set (`near_views`: 10th-percentile depth below 0.8x, the
-signature of Gaussians floating in front of that camera) and their share of the PSNR the runs lose.
+signature of Gaussians floating in front of that camera) and their share of the PSNR the runs lose; where they
+recorded what lies in front of each test camera (`front_*`), that too, for the near views, the same views in the
+final-sets, and the rest.
 
     python benchmarks/done_when_46.py benchmarks/results/real6-seeded-restarts --against benchmarks/results/real12 \
         [--also-over SCENE ...] [--out FILE.json]
@@ -27,7 +29,7 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
-from statistics import mean, stdev
+from statistics import mean, median, stdev
 from typing import Dict, List, Optional, Sequence
 
 from hpgs_lab import stats
@@ -186,6 +188,7 @@ def near_views(rows: Sequence[RunResult], final_sets: Sequence[RunResult], ratio
     the mean cost over pairs as recorded and as it would be with the near views at their final-set's PSNR; also per
     start (`seed_points`)."""
     near, rest, by_start, without = [], [], {}, []
+    fronts: Dict[str, list] = {"near": [], "rest": [], "near, final-set": []}
     for pair in schedule_pairs(rows, final_sets)[0]:
         final_view = {v.name: v for v in pair.final.test_views}
         start = by_start.setdefault(pair.run.seed_points or "unknown", {"pairs": 0, "near": 0, "views": 0, "cost": []})
@@ -197,6 +200,9 @@ def near_views(rows: Sequence[RunResult], final_sets: Sequence[RunResult], ratio
             counted = True
             is_near = v.depth_p10 < ratio * w.depth_p10
             (near if is_near else rest).append(v.psnr - w.psnr)
+            fronts["near" if is_near else "rest"].append(v)
+            if is_near:
+                fronts["near, final-set"].append(w)
             lost += (w.psnr - v.psnr) if is_near else 0.0
             start["near"] += int(is_near)
             start["views"] += 1
@@ -210,9 +216,26 @@ def near_views(rows: Sequence[RunResult], final_sets: Sequence[RunResult], ratio
     costs = [c for v in by_start.values() for c in v["cost"]]
     by_start = {k: {"pairs": v["pairs"], "near": v["near"], "views": v["views"], "cost": mean(v["cost"])}
                 for k, v in by_start.items() if v["pairs"]}
-    return {"ratio": ratio, "views": len(near) + len(rest), "near": len(near),
-            "near_mean": mean(near) if near else 0.0, "rest_mean": mean(rest) if rest else 0.0,
-            "cost": mean(costs), "cost_near_as_final_set": mean(without), "by_start": by_start}
+    out = {"ratio": ratio, "views": len(near) + len(rest), "near": len(near),
+           "near_mean": mean(near) if near else 0.0, "rest_mean": mean(rest) if rest else 0.0,
+           "cost": mean(costs), "cost_near_as_final_set": mean(without), "by_start": by_start}
+    front = {k: front_summary(v) for k, v in fronts.items()}
+    if any(front.values()):
+        out["front"] = {k: v for k, v in front.items() if v}
+    return out
+
+
+def front_summary(views: Sequence) -> dict:
+    """What lies in front of these test cameras (`front_*`, where the runs recorded it): the share of views with a
+    large Gaussian in front, the mean count of large ones, the median of their largest sigma, and the mean share of
+    them on a training view's surface. {} where no view recorded it."""
+    seen = [v for v in views if v.front_large is not None]
+    if not seen:
+        return {}
+    with_large = [v for v in seen if v.front_large]
+    return {"views": len(seen), "with_large": len(with_large) / len(seen), "large_mean": mean(v.front_large for v in seen),
+            "sigma_max_median": median([v.front_large_sigma_max for v in with_large]) if with_large else None,
+            "on_surface_mean": mean(v.front_large_on_surface for v in with_large) if with_large else None}
 
 
 def culled_counts(rows: Sequence[RunResult], final_sets: Sequence[RunResult]) -> Dict[str, dict]:
@@ -259,6 +282,12 @@ def main() -> None:
                   f"views at their final-set's PSNR")
             for start, v in sorted(near["by_start"].items()):
                 print(f"    start {start}: {v['pairs']} pairs, cost {v['cost']:+.2f} dB, near views {v['near']} of {v['views']}")
+            for which, f in near.get("front", {}).items():
+                sigma = "-" if f["sigma_max_median"] is None else f"{f['sigma_max_median']:.3g}"
+                surface = "-" if f["on_surface_mean"] is None else f"{f['on_surface_mean']:.2f}"
+                print(f"    in front of the camera, {which} views ({f['views']}): {f['with_large']:.0%} with a large "
+                      f"Gaussian, {f['large_mean']:.1f} large on average, their largest sigma (median) {sigma}, "
+                      f"on a training view's surface {surface}")
         culled = culled_counts(rows, finals)
         if culled:
             out["near_culled"] = culled

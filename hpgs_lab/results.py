@@ -97,7 +97,8 @@ class Metrics:
 @dataclass(frozen=True)
 class ViewMetrics:
     """One test view's metrics at the end of training; the render's depth over its opaque pixels (10th percentile,
-    median; `hpgs_ns.trainer.view_depths`) where the run recorded it."""
+    median; `hpgs_ns.trainer.view_depths`) and what lies in front of its camera (`front_*`,
+    `hpgs_ns.model.HpgsSplatfactoModel.describe_front`) where the run recorded them."""
 
     name: str
     psnr: float
@@ -105,6 +106,11 @@ class ViewMetrics:
     lpips: float
     depth_p10: Optional[float] = None
     depth_median: Optional[float] = None
+    front_gaussians: Optional[int] = None
+    front_large: Optional[int] = None
+    front_large_sigma_median: Optional[float] = None
+    front_large_sigma_max: Optional[float] = None
+    front_large_on_surface: Optional[float] = None
 
 
 @dataclass(frozen=True)

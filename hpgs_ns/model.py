@@ -26,7 +26,7 @@ import contextlib
 import copy
 from collections import defaultdict
 from dataclasses import dataclass, field
-from typing import Any, Callable, Dict, Iterator, List, Literal, Optional, Tuple, Type, Union
+from typing import Any, Callable, Dict, Iterator, List, Literal, Optional, Sequence, Tuple, Type, Union
 
 import numpy as np
 import torch
@@ -35,7 +35,7 @@ from nerfstudio.models import splatfacto
 from nerfstudio.models.splatfacto import SplatfactoModel, SplatfactoModelConfig
 
 from hpgs_ns.errors import UserError, check_option
-from hpgs_ns.render.footprints import PinholeViews, near_and_large, off_every_surface
+from hpgs_ns.render.footprints import PinholeViews, in_front, near_and_large, off_every_surface
 from hpgs_ns.render.pair_render import Splat
 from hpgs_ns.render.rasterize import composite, rasterize_splat
 from hpgs_ns.render.viewmats import world_to_camera
@@ -518,10 +518,10 @@ class HpgsSplatfactoModel(SplatfactoModel):
         return (strategy.refine_start_iter < step < strategy.refine_stop_iter and step % strategy.refine_every == 0)
 
     @torch.no_grad()
-    def training_surfaces(self) -> Tuple[PinholeViews, List[torch.Tensor], List[torch.Tensor]]:
-        """The active training views rendered (eval mode, short side at most `near_cull_render_short_side`): their
-        cameras at that size, expected depths and opacities ([H, W] each)."""
-        cameras = copy.deepcopy(self.near_cull_training())
+    def training_surfaces(self, cameras: Optional[Cameras] = None) -> Tuple[PinholeViews, List[torch.Tensor], List[torch.Tensor]]:
+        """The active training views (or `cameras`) rendered (eval mode, short side at most
+        `near_cull_render_short_side`): their cameras at that size, expected depths and opacities ([H, W] each)."""
+        cameras = copy.deepcopy(self.near_cull_training() if cameras is None else cameras)
         short = torch.minimum(cameras.width, cameras.height).float()
         cameras.rescale_output_resolution(torch.clamp(self.near_cull_render_short_side / short, max=1.0))
         depths, alphas = [], []
@@ -557,6 +557,34 @@ class HpgsSplatfactoModel(SplatfactoModel):
 
         writer.put_scalar("train/near_culled", count, self.step + self.step_offset)
         return count
+
+    @torch.no_grad()
+    def describe_front(self, cameras: Cameras, median_depths: Sequence[Optional[float]],
+                       training: Cameras) -> List[Dict[str, Any]]:
+        """For each camera of `cameras` (the test views), what lies in front of it (`render.footprints.in_front`,
+        from its render's median depth): `front_gaussians`, `front_large` (of those, wide in its image), the large
+        ones' median and largest sigma (largest axis, the splat's units: what a 3D-scale prune compares) and the
+        share of them that a view of `training` renders on its surface (`off_every_surface`). {} where the view has
+        no median depth. Read by the lab beside each view's PSNR: what a collapsed view has in front of it."""
+        views = PinholeViews.from_cameras(cameras, self.means.device)
+        means, scales = self.means.detach(), torch.exp(self.scales.detach())
+        out: List[Dict[str, Any]] = []
+        surfaces = None
+        for k, median in enumerate(median_depths):
+            if median is None or self.num_points == 0:
+                out.append({})
+                continue
+            front, large = in_front(means, scales, views, k, float(median))
+            entry: Dict[str, Any] = {"front_gaussians": int(front.sum()), "front_large": int(large.sum())}
+            if entry["front_large"]:
+                sigma = scales[large].max(dim=-1).values
+                if surfaces is None:
+                    surfaces = self.training_surfaces(training)
+                on = ~off_every_surface(means[large], *surfaces)
+                entry.update(front_large_sigma_median=float(sigma.median()), front_large_sigma_max=float(sigma.max()),
+                             front_large_on_surface=float(on.float().mean()))
+            out.append(entry)
+        return out
 
     @torch.no_grad()
     def reset_to_initial(self, step: int, optimizers: Dict[str, torch.optim.Optimizer]) -> None:

@@ -411,9 +411,10 @@ def check_resume_matches(pipeline) -> None:
 
 def write_final_eval(trainer: Trainer, path: Path, worst_views: int = 0) -> Path:
     """`ns-eval`'s output for the trainer's current weights (what `_after_train` saves as the final checkpoint),
-    plus each test view's own metrics (`test_views`: name, psnr, ssim, lpips, and `view_depths`'s two depths, in
-    the test split's order) and, with `worst_views`, JPEGs of the lowest-PSNR views beside `path` (`worst_views`:
-    name, psnr, image file name), and the splat's size (`num_gaussians`; with near-cull-screen on, `near_culled`)."""
+    plus each test view's own metrics (`test_views`: name, psnr, ssim, lpips, `view_depths`'s two depths and, from
+    the hpgs model, what lies in front of its camera (`describe_front`), in the test split's order) and, with
+    `worst_views`, JPEGs of the lowest-PSNR views beside `path` (`worst_views`: name, psnr, image file name), and
+    the splat's size (`num_gaussians`; with near-cull-screen on, `near_culled`)."""
     pipeline = trainer.pipeline
     model = pipeline.model
     per_view: List[Dict[str, float]] = []
@@ -438,6 +439,13 @@ def write_final_eval(trainer: Trainer, path: Path, worst_views: int = 0) -> Path
     names = list(getattr(pipeline.datamanager, "test_view_names", []))
     named = len(names) == len(per_view)
     test_views = [{"name": n, **m} for n, m in zip(names, per_view)] if named else []
+    if test_views and hasattr(model, "describe_front"):
+        dm = pipeline.datamanager
+        training = dm.train_dataset.cameras
+        if getattr(dm, "active", None) is not None:  # the views it trained on, not the candidates
+            training = training[torch.tensor(dm.active, dtype=torch.long)]
+        fronts = model.describe_front(dm.eval_dataset.cameras, [v["depth_median"] for v in test_views], training)
+        test_views = [{**v, **f} for v, f in zip(test_views, fronts)]
     worst_saved = []
     for rank, (psnr, index, image) in enumerate(worst):
         file = path.with_name(f"{path.stem}-worst{rank}.jpg")

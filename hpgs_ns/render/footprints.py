@@ -1,4 +1,5 @@
-"""Which Gaussians sit close in front of a camera and fill much of its image (`--pipeline.model.near-cull-screen`).
+"""Which Gaussians sit close in front of a camera and fill much of its image (`--pipeline.model.near-cull-screen`,
+and the final eval's account of what lies in front of each test camera).
 
 gsplat's screen-size prune (splatfacto's `cull-screen-size`) measures a Gaussian's footprint in the view it is
 training on; a Gaussian floating just in front of a camera that never trains (a candidate view, or a test view
@@ -66,20 +67,44 @@ def near_and_large(means: torch.Tensor, scales: torch.Tensor, views: PinholeView
     flagged = torch.zeros(means.shape[0], dtype=torch.bool, device=means.device)
     if means.shape[0] == 0 or len(views) == 0:
         return flagged
-    radius_world = 3.0 * scales.max(dim=-1).values  # gsplat's radius: 3 sigma of the largest axis
     for start in range(0, len(views), chunk):
-        sl = slice(start, start + chunk)
-        fx, fy, w, h = (t[sl].to(means.device)[:, None] for t in (views.fx, views.fy, views.width, views.height))
-        z, u, v = views.pixels(means, sl)
-        front = z > NEAR_PLANE
-        r = torch.maximum(fx, fy) * radius_world[None, :] / z.clamp(min=NEAR_PLANE)
-        inside = front & (u >= 0) & (u < w) & (v >= 0) & (v < h)
-        reaches = front & (u > -r) & (u < w + r) & (v > -r) & (v < h + r)
+        z, inside, reaches, large = footprints(means, scales, views, slice(start, start + chunk), screen)
         typical = torch.where(inside, z, torch.full_like(z, float("nan"))).nanmedian(dim=1).values  # [C]
         near = z < depth * typical[:, None]  # NaN (nothing in the image) compares False
-        large = r > screen * torch.maximum(w, h)
         flagged |= (reaches & near & large).any(dim=0)
     return flagged
+
+
+def footprints(means: torch.Tensor, scales: torch.Tensor, views: PinholeViews, cameras: slice,
+               screen: float) -> Tuple[torch.Tensor, ...]:
+    """Each Gaussian in each of `views[cameras]`, [C, N] each: its centre's depth; whether the centre falls in the
+    image; whether its footprint (gsplat's 3-sigma radius of the largest axis) reaches into it; whether that radius
+    is above `screen` x the image's larger side."""
+    radius_world = 3.0 * scales.max(dim=-1).values
+    fx, fy, w, h = (t[cameras].to(means.device)[:, None] for t in (views.fx, views.fy, views.width, views.height))
+    z, u, v = views.pixels(means, cameras)
+    front = z > NEAR_PLANE
+    r = torch.maximum(fx, fy) * radius_world[None, :] / z.clamp(min=NEAR_PLANE)
+    inside = front & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    reaches = front & (u > -r) & (u < w + r) & (v > -r) & (v < h + r)
+    return z, inside, reaches, r > screen * torch.maximum(w, h)
+
+
+FRONT_DEPTH = 0.25
+"""`in_front`'s depth bound: a fraction of the view's rendered median depth (near-cull-depth's default)."""
+FRONT_SCREEN = 0.15
+"""`in_front`'s "large": a footprint radius above this fraction of the image's larger side (cull-screen-size's)."""
+
+
+@torch.no_grad()
+def in_front(means: torch.Tensor, scales: torch.Tensor, views: PinholeViews, k: int,
+             median_depth: float) -> Tuple[torch.Tensor, torch.Tensor]:
+    """[N] bool masks for view `k`: the Gaussians whose footprint reaches its image from nearer than FRONT_DEPTH x
+    `median_depth` (its render's median depth), and of those the ones wider than FRONT_SCREEN of the image: what
+    lies between the camera and what it shows."""
+    z, _, reaches, large = (t[0] for t in footprints(means, scales, views, slice(k, k + 1), FRONT_SCREEN))
+    front = reaches & (z < FRONT_DEPTH * median_depth)
+    return front, front & large
 
 
 SURFACE_TOLERANCE = 0.2

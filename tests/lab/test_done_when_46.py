@@ -147,6 +147,22 @@ def test_near_views_count_the_run_views_nearer_than_their_final_sets_and_what_th
     assert out["cost"] == pytest.approx(1.75) and out["cost_near_as_final_set"] == pytest.approx(-0.75)
     assert out["by_start"]["active (random at step 0)"] == {"pairs": 1, "near": 1, "views": 2, "cost": pytest.approx(4.5)}
     assert out["by_start"]["active"]["near"] == 0
+    assert "front" not in out  # these runs did not record what lies in front of their cameras
+    # where they did: the near view t0 has 3 large Gaussians in front (sigma up to 0.4, a quarter on a training
+    # surface), its final-set none; the rest one view with one large (sigma 0.1, on a surface), two with none
+    def front(view, large, sigma=None, on=None):
+        extra = {"front_large_sigma_max": sigma, "front_large_on_surface": on} if large else {}
+        return dataclasses.replace(view, front_gaussians=large + 5, front_large=large, **extra)
+    r0f = dataclasses.replace(r0, test_views=[front(r0.test_views[0], 3, 0.4, 0.25), front(r0.test_views[1], 1, 0.1, 1.0)])
+    r1f = dataclasses.replace(r1, test_views=[front(v, 0) for v in r1.test_views])
+    f0f = dataclasses.replace(f0, test_views=[front(v, 0) for v in f0.test_views])
+    got = done_when.near_views([r0f, r1f], [f0f, f1])["front"]
+    assert got["near"] == {"views": 1, "with_large": 1.0, "large_mean": 3.0, "sigma_max_median": 0.4,
+                           "on_surface_mean": 0.25}
+    assert got["rest"] == {"views": 3, "with_large": pytest.approx(1 / 3), "large_mean": pytest.approx(1 / 3),
+                           "sigma_max_median": 0.1, "on_surface_mean": 1.0}
+    assert got["near, final-set"] == {"views": 1, "with_large": 0.0, "large_mean": 0.0, "sigma_max_median": None,
+                                      "on_surface_mean": None}
     # runs written before depths were recorded: nothing to say
     bare = [dataclasses.replace(r, test_views=[dataclasses.replace(v, depth_p10=None) for v in r.test_views]) for r in (r0, r1)]
     assert done_when.near_views(bare, [f0, f1]) == {}

@@ -148,3 +148,43 @@ def test_the_final_eval_records_the_count_only_when_the_cull_is_on(tiny_scene, t
         trainer.pipeline.model.near_culled = 7 if on else 0
         data = json.loads(write_final_eval(trainer, tmp_path / f"eval-{on}.json").read_text())
         assert data.get("near_culled") == (7 if on else None)
+
+
+def test_in_front_counts_what_lies_between_a_camera_and_its_median_depth():
+    from hpgs_ns.render.footprints import in_front
+
+    extra_means = [[0.0, 0.0, 0.3],    # 0.3 < 0.25 x 4 and 50 px wide: in front, large
+                   [0.0, 0.0, 0.3],    # in front, 1 px wide
+                   [0.0, 0.0, 3.0],    # 50 px wide but beyond 0.25 x 4: not in front
+                   [0.0, 0.0, -0.3]]   # behind the camera
+    means, scales = scene_with(extra_means, [[0.05] * 3, [0.001] * 3, [0.5] * 3, [0.05] * 3])
+    front, large = in_front(means, scales, one_camera(), 0, median_depth=4.0)
+    assert front.nonzero().squeeze(1).tolist() == [200, 201] and large.nonzero().squeeze(1).tolist() == [200]
+    # the bound follows the render's median: at 16, the background Gaussian at 3.0 is in front too
+    front, large = in_front(means, scales, one_camera(), 0, median_depth=16.0)
+    assert front.nonzero().squeeze(1).tolist() == [200, 201, 202] and large[202]
+
+
+def test_the_final_eval_says_what_lies_in_front_of_each_test_camera(tiny_scene, tmp_path):
+    import json
+
+    from hpgs_ns.trainer import write_final_eval
+
+    trainer = model_trainer(tiny_scene, tmp_path, near_cull_screen=0.0)
+    model, dm = trainer.pipeline.model, trainer.pipeline.datamanager
+    train_steps(trainer, range(2))
+    before = json.loads(write_final_eval(trainer, tmp_path / "before.json").read_text())["test_views"]
+    assert len(before) == len(dm.eval_dataset) and all(v["front_gaussians"] >= v["front_large"] >= 0 for v in before)
+    # a wide Gaussian 0.05 in front of the first test camera: one more in front of it, and wide
+    c2w = dm.eval_dataset.cameras.camera_to_worlds[0]
+    model.add_gaussians((c2w[:3, 3] - 0.05 * c2w[:3, 2])[None].to(model.means.device),
+                        torch.full((1, 3), 200, dtype=torch.uint8), trainer.optimizers)
+    with torch.no_grad():
+        model.gauss_params["scales"][-1] = torch.log(torch.tensor(0.05))
+    after = json.loads(write_final_eval(trainer, tmp_path / "after.json").read_text())["test_views"][0]
+    assert after["front_gaussians"] == before[0]["front_gaussians"] + 1
+    assert after["front_large"] == before[0]["front_large"] + 1
+    assert after["front_large_sigma_max"] == pytest.approx(max(0.05, before[0].get("front_large_sigma_max", 0.0)))
+    assert 0.0 <= after["front_large_on_surface"] <= 1.0
+    # a view without a median depth gets nothing
+    assert model.describe_front(dm.eval_dataset.cameras[:1], [None], dm.train_dataset.cameras[:2]) == [{}]
