@@ -226,16 +226,21 @@ def near_views(rows: Sequence[RunResult], final_sets: Sequence[RunResult], ratio
 
 
 def front_summary(views: Sequence) -> dict:
-    """What lies in front of these test cameras (`front_*`, where the runs recorded it): the share of views with a
-    large Gaussian in front, the mean count of large ones, the median of their largest sigma, and the mean share of
-    them on a training view's surface. {} where no view recorded it."""
+    """What lies in front of these test cameras (`front_*`, where the runs recorded it): the mean opacity the
+    Gaussians in front render over the image, the share of views with a large Gaussian in front, the mean count of
+    large ones, the median of their largest sigma, and the mean shares of them on one, and on two or more, training
+    views' surfaces. {} where no view recorded it."""
     seen = [v for v in views if v.front_large is not None]
     if not seen:
         return {}
     with_large = [v for v in seen if v.front_large]
-    return {"views": len(seen), "with_large": len(with_large) / len(seen), "large_mean": mean(v.front_large for v in seen),
+    two = [v.front_large_on_two_surfaces for v in with_large if v.front_large_on_two_surfaces is not None]
+    covers = [v.front_cover for v in seen if v.front_cover is not None]
+    return {"views": len(seen), "cover_mean": mean(covers) if covers else None,
+            "with_large": len(with_large) / len(seen), "large_mean": mean(v.front_large for v in seen),
             "sigma_max_median": median([v.front_large_sigma_max for v in with_large]) if with_large else None,
-            "on_surface_mean": mean(v.front_large_on_surface for v in with_large) if with_large else None}
+            "on_surface_mean": mean(v.front_large_on_surface for v in with_large) if with_large else None,
+            "on_two_surfaces_mean": mean(two) if two else None}
 
 
 def culled_counts(rows: Sequence[RunResult], final_sets: Sequence[RunResult]) -> Dict[str, dict]:
@@ -285,7 +290,10 @@ def main() -> None:
             for which, f in near.get("front", {}).items():
                 sigma = "-" if f["sigma_max_median"] is None else f"{f['sigma_max_median']:.3g}"
                 surface = "-" if f["on_surface_mean"] is None else f"{f['on_surface_mean']:.2f}"
-                print(f"    in front of the camera, {which} views ({f['views']}): {f['with_large']:.0%} with a large "
+                if f["on_two_surfaces_mean"] is not None:
+                    surface += f" (two or more: {f['on_two_surfaces_mean']:.2f})"
+                cover = "" if f["cover_mean"] is None else f"they cover {f['cover_mean']:.0%} of the image; "
+                print(f"    in front of the camera, {which} views ({f['views']}): {cover}{f['with_large']:.0%} with a large "
                       f"Gaussian, {f['large_mean']:.1f} large on average, their largest sigma (median) {sigma}, "
                       f"on a training view's surface {surface}")
         culled = culled_counts(rows, finals)

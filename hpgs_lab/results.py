@@ -107,10 +107,17 @@ class ViewMetrics:
     depth_p10: Optional[float] = None
     depth_median: Optional[float] = None
     front_gaussians: Optional[int] = None
+    front_cover: Optional[float] = None
     front_large: Optional[int] = None
     front_large_sigma_median: Optional[float] = None
     front_large_sigma_max: Optional[float] = None
     front_large_on_surface: Optional[float] = None
+    front_large_on_two_surfaces: Optional[float] = None
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> ViewMetrics:
+        """From a final eval's (or a result's) test-view entry; keys that are not fields are left out."""
+        return cls(**_pick(cls, data))
 
 
 @dataclass(frozen=True)
@@ -306,7 +313,7 @@ class RunResult:
                    if k in data},
                 psnr_per_round=[RoundPsnr(**_pick(RoundPsnr, p)) for p in data.get("psnr_per_round", [])],
                 psnr_at_round_steps={int(k): float(v) for k, v in (data.get("psnr_at_round_steps") or {}).items()},
-                test_views=[ViewMetrics(**_pick(ViewMetrics, v)) for v in data.get("test_views", [])],
+                test_views=[ViewMetrics.from_dict(v) for v in data.get("test_views", [])],
                 provenance=Provenance(**_pick(Provenance, data.get("provenance", {}))),
                 final_set_of=SourceRun(**_pick(SourceRun, data["final_set_of"])) if data.get("final_set_of") else None,
             )

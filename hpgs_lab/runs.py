@@ -581,8 +581,7 @@ def run_one(bench: Bench, job: Job, env: Optional[Dict[str, str]] = None, sweep:
         dataparser=job.scene.dataparser,
         test=Metrics.from_dict(metrics["results"]),
         # per-view metrics, where the trainer's final eval records them
-        test_views=[ViewMetrics(v["name"], v["psnr"], v["ssim"], v["lpips"], v.get("depth_p10"), v.get("depth_median"))
-                    for v in metrics.get("test_views", [])],
+        test_views=[ViewMetrics.from_dict(v) for v in metrics.get("test_views", [])],
         num_test_views=len(selected.test),
         num_train_views=len(selected.active) + len(selected.withheld),
         num_views_final=len(selected.active),

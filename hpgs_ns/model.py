@@ -26,7 +26,7 @@ import contextlib
 import copy
 from collections import defaultdict
 from dataclasses import dataclass, field
-from typing import Any, Callable, Dict, Iterator, List, Literal, Optional, Sequence, Tuple, Type, Union
+from typing import Any, Callable, Dict, Iterator, List, Literal, Optional, Tuple, Type, Union
 
 import numpy as np
 import torch
@@ -35,7 +35,7 @@ from nerfstudio.models import splatfacto
 from nerfstudio.models.splatfacto import SplatfactoModel, SplatfactoModelConfig
 
 from hpgs_ns.errors import UserError, check_option
-from hpgs_ns.render.footprints import PinholeViews, in_front, near_and_large, off_every_surface
+from hpgs_ns.render.footprints import PinholeViews, in_front, near_and_large, surface_support
 from hpgs_ns.render.pair_render import Splat
 from hpgs_ns.render.rasterize import composite, rasterize_splat
 from hpgs_ns.render.viewmats import world_to_camera
@@ -122,6 +122,11 @@ class HpgsSplatfactoModelConfig(SplatfactoModelConfig):
     (docs/lab/floater-guard-plan.md). 0: off."""
     near_cull_depth: float = 0.25
     """near-cull-screen's depth bound, as a fraction of each camera's median depth of the Gaussians in its image."""
+    near_cull_support: int = 1
+    """How many active training views must render a near-cull-screen suspect on their surface for it to stay. 1: one
+    is enough. 2: a suspect only one view renders there goes too: a real surface beside a camera is rendered by
+    every training view that sees it, a Gaussian that reproduces one view's pixels from the wrong depth by that
+    view alone."""
 
     def __post_init__(self) -> None:
         parent = getattr(super(), "__post_init__", None)
@@ -132,6 +137,8 @@ class HpgsSplatfactoModelConfig(SplatfactoModelConfig):
                      "must be at least 0 and below 1 (a fraction of the image's larger side)", "0 turns it off")
         check_option(flag + "near-cull-depth", self.near_cull_depth, 0 < self.near_cull_depth <= 1,
                      "must be above 0 and at most 1 (a fraction of each camera's median depth)")
+        check_option(flag + "near-cull-support", self.near_cull_support, self.near_cull_support >= 1,
+                     "must be at least 1 (training views)", "pass 1 (one view is enough) or 2")
 
 
 class HpgsSplatfactoModel(SplatfactoModel):
@@ -534,9 +541,10 @@ class HpgsSplatfactoModel(SplatfactoModel):
     @torch.no_grad()
     def cull_near_large(self) -> int:
         """near-cull-screen, now: remove the Gaussians `render.footprints.near_and_large` finds from `near_cull_views`
-        that no active training view shows on its rendered surface (`off_every_surface`: a wall beside a candidate
-        camera, which the training views see, stays; a Gaussian hanging in space they see through, or that none of
-        them sees, goes). gsplat's `remove` keeps the optimizers' and the strategy's rows in step. Returns how many."""
+        that fewer than near-cull-support active training views show on their rendered surface (`surface_support`: a
+        wall beside a candidate camera, which the training views see, stays; a Gaussian hanging in space they see
+        through, or that none of them sees, goes). gsplat's `remove` keeps the optimizers' and the strategy's rows in
+        step. Returns how many."""
         from gsplat.strategy.ops import remove  # pure PyTorch: safe on a CPU machine
 
         if self.near_cull_views is None or self.num_points == 0:
@@ -547,7 +555,7 @@ class HpgsSplatfactoModel(SplatfactoModel):
         if bool(mask.any()) and self.near_cull_training is not None:
             views, depths, alphas = self.training_surfaces()
             picked = mask.nonzero().squeeze(1)
-            mask[picked] = off_every_surface(means[picked], views, depths, alphas)
+            mask[picked] = surface_support(means[picked], views, depths, alphas) < self.config.near_cull_support
         count = int(mask.sum())
         if count == 0 or count >= self.num_points:  # never the whole splat
             return 0
@@ -559,32 +567,49 @@ class HpgsSplatfactoModel(SplatfactoModel):
         return count
 
     @torch.no_grad()
-    def describe_front(self, cameras: Cameras, median_depths: Sequence[Optional[float]],
-                       training: Cameras) -> List[Dict[str, Any]]:
-        """For each camera of `cameras` (the test views), what lies in front of it (`render.footprints.in_front`,
-        from its render's median depth): `front_gaussians`, `front_large` (of those, wide in its image), the large
-        ones' median and largest sigma (largest axis, the splat's units: what a 3D-scale prune compares) and the
-        share of them that a view of `training` renders on its surface (`off_every_surface`). {} where the view has
-        no median depth. Read by the lab beside each view's PSNR: what a collapsed view has in front of it."""
+    def describe_front(self, cameras: Cameras, training: Cameras) -> List[Dict[str, Any]]:
+        """For each camera of `cameras` (the test views), what lies in front of it (`render.footprints.in_front`):
+        `front_gaussians`, `front_cover` (the mean opacity they alone render over its image: the haze they lay on
+        it), `front_large` (of those, wide in its image), the large ones' median and largest sigma (largest axis,
+        the splat's units: what a 3D-scale prune compares) and the shares of them that one, and two or more, views
+        of `training` render on their surface (`surface_support`); {} for an empty splat. Read by the lab beside
+        each view's PSNR: what a collapsed view has in front of it."""
         views = PinholeViews.from_cameras(cameras, self.means.device)
         means, scales = self.means.detach(), torch.exp(self.scales.detach())
         out: List[Dict[str, Any]] = []
         surfaces = None
-        for k, median in enumerate(median_depths):
-            if median is None or self.num_points == 0:
+        for k in range(len(views)):
+            if self.num_points == 0:
                 out.append({})
                 continue
-            front, large = in_front(means, scales, views, k, float(median))
-            entry: Dict[str, Any] = {"front_gaussians": int(front.sum()), "front_large": int(large.sum())}
+            front, large = in_front(means, scales, views, k)
+            entry: Dict[str, Any] = {"front_gaussians": int(front.sum()), "front_large": int(large.sum()),
+                                     "front_cover": self.cover(cameras[k : k + 1], front) if bool(front.any()) else 0.0}
             if entry["front_large"]:
                 sigma = scales[large].max(dim=-1).values
                 if surfaces is None:
                     surfaces = self.training_surfaces(training)
-                on = ~off_every_surface(means[large], *surfaces)
+                support = surface_support(means[large], *surfaces)
                 entry.update(front_large_sigma_median=float(sigma.median()), front_large_sigma_max=float(sigma.max()),
-                             front_large_on_surface=float(on.float().mean()))
+                             front_large_on_surface=float((support >= 1).float().mean()),
+                             front_large_on_two_surfaces=float((support >= 2).float().mean()))
             out.append(entry)
         return out
+
+    @torch.no_grad()
+    def cover(self, camera: Cameras, gaussians: torch.Tensor) -> float:
+        """The mean opacity the Gaussians `gaussians` ([N] bool) alone render over `camera`'s ([1]) image, rendered
+        at `near_cull_render_short_side` px on its short side."""
+        camera = copy.deepcopy(camera)
+        short = torch.minimum(camera.width, camera.height).float()
+        camera.rescale_output_resolution(torch.clamp(self.near_cull_render_short_side / short, max=1.0))
+        camera = camera.to(self.device)
+        with self.eval_mode():
+            _, alpha, _ = self._rasterize_cameras(camera.camera_to_worlds.reshape(-1, 3, 4),
+                                                  camera.get_intrinsics_matrices().reshape(-1, 3, 3),
+                                                  int(camera.width[0].item()), int(camera.height[0].item()),
+                                                  crop_ids=gaussians.to(self.device))
+        return float(alpha.mean())
 
     @torch.no_grad()
     def reset_to_initial(self, step: int, optimizers: Dict[str, torch.optim.Optimizer]) -> None:

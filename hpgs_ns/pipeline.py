@@ -75,7 +75,10 @@ class HpgsPipeline(VanillaPipeline):
             signature["random-points"] = str(self.datamanager.config.random_points)
         near_cull = float(getattr(config.model, "near_cull_screen", 0.0))
         if near_cull > 0:  # which Gaussians densification keeps
-            signature["near-cull"] = f"{near_cull:g} {float(config.model.near_cull_depth):g}"
+            support = int(config.model.near_cull_support)
+            # support 1 (the first version's rule) keeps the signature checkpoints of that version carry
+            signature["near-cull"] = (f"{near_cull:g} {float(config.model.near_cull_depth):g}"
+                                      + (f" support {support}" if support != 1 else ""))
             if training:
                 dm = self.datamanager
                 self.model.near_cull_views = PinholeViews.from_cameras(dm.train_dataset.cameras, self.model.device)
@@ -83,11 +86,17 @@ class HpgsPipeline(VanillaPipeline):
                 CONSOLE.print(f"near-cull-screen {near_cull:g}: at each densification step, Gaussians nearer than "
                               f"{config.model.near_cull_depth:g} x the median depth of any of the "
                               f"{len(self.model.near_cull_views)} training-split cameras (poses only) and wider than "
-                              f"{near_cull:g} of its image are removed unless a training view shows them on its "
-                              "surface", soft_wrap=True)
-        elif training and float(getattr(config.model, "near_cull_depth", 0.25)) != 0.25:
-            CONSOLE.print("[yellow]--pipeline.model.near-cull-depth does nothing in this run: near-cull-screen is 0 "
-                          "(off); pass --pipeline.model.near-cull-screen 0.15 to turn the cull on", soft_wrap=True)
+                              f"{near_cull:g} of its image are removed unless "
+                              + ("a training view shows them on its surface" if support == 1 else
+                                 f"{support} training views show them on their surfaces"), soft_wrap=True)
+        elif training:
+            idle = [f"--pipeline.model.{flag}" for flag, value, default in (
+                ("near-cull-depth", float(getattr(config.model, "near_cull_depth", 0.25)), 0.25),
+                ("near-cull-support", int(getattr(config.model, "near_cull_support", 1)), 1)) if value != default]
+            if idle:
+                CONSOLE.print(f"[yellow]{' and '.join(idle)} {'does' if len(idle) == 1 else 'do'} nothing in this run: "
+                              "near-cull-screen is 0 (off); pass --pipeline.model.near-cull-screen 0.15 to turn the "
+                              "cull on", soft_wrap=True)
         self.datamanager.selection_signature = signature
         self.rounds: Optional[SelectionRounds] = selection.setup(datamanager=self.datamanager, model=self.model) if training else None
         self.snapshots: Optional[Snapshots] = Snapshots(selection.snapshot_every, self.datamanager, self.model) if training else None

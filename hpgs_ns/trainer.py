@@ -444,7 +444,7 @@ def write_final_eval(trainer: Trainer, path: Path, worst_views: int = 0) -> Path
         training = dm.train_dataset.cameras
         if getattr(dm, "active", None) is not None:  # the views it trained on, not the candidates
             training = training[torch.tensor(dm.active, dtype=torch.long)]
-        fronts = model.describe_front(dm.eval_dataset.cameras, [v["depth_median"] for v in test_views], training)
+        fronts = model.describe_front(dm.eval_dataset.cameras, training)
         test_views = [{**v, **f} for v, f in zip(test_views, fronts)]
     worst_saved = []
     for rank, (psnr, index, image) in enumerate(worst):

@@ -91,19 +91,23 @@ def footprints(means: torch.Tensor, scales: torch.Tensor, views: PinholeViews, c
 
 
 FRONT_DEPTH = 0.25
-"""`in_front`'s depth bound: a fraction of the view's rendered median depth (near-cull-depth's default)."""
+"""`in_front`'s depth bound: a fraction of the median depth of the centres in the view's image (near-cull-depth's
+default)."""
 FRONT_SCREEN = 0.15
 """`in_front`'s "large": a footprint radius above this fraction of the image's larger side (cull-screen-size's)."""
 
 
 @torch.no_grad()
-def in_front(means: torch.Tensor, scales: torch.Tensor, views: PinholeViews, k: int,
-             median_depth: float) -> Tuple[torch.Tensor, torch.Tensor]:
+def in_front(means: torch.Tensor, scales: torch.Tensor, views: PinholeViews, k: int) -> Tuple[torch.Tensor, torch.Tensor]:
     """[N] bool masks for view `k`: the Gaussians whose footprint reaches its image from nearer than FRONT_DEPTH x
-    `median_depth` (its render's median depth), and of those the ones wider than FRONT_SCREEN of the image: what
-    lies between the camera and what it shows."""
-    z, _, reaches, large = (t[0] for t in footprints(means, scales, views, slice(k, k + 1), FRONT_SCREEN))
-    front = reaches & (z < FRONT_DEPTH * median_depth)
+    the median depth of the centres in it (as `near_and_large`: a haze over the image does not move that median,
+    while it moves the render's), and of those the ones wider than FRONT_SCREEN of the image: what lies between
+    the camera and what it shows."""
+    z, inside, reaches, large = (t[0] for t in footprints(means, scales, views, slice(k, k + 1), FRONT_SCREEN))
+    if not bool(inside.any()):
+        none = torch.zeros_like(reaches)
+        return none, none
+    front = reaches & (z < FRONT_DEPTH * z[inside].median())
     return front, front & large
 
 
@@ -118,7 +122,15 @@ def off_every_surface(means: torch.Tensor, views: PinholeViews, depths, alphas) 
     `alphas[k]`: view k's expected depth and opacity, [H, W] at that view's size). A centre is on view k's surface
     where it falls in k's image, over a pixel at least half opaque, within SURFACE_TOLERANCE of that pixel's depth
     (in front of it: k sees through it; behind it: k cannot see it). True also where no view's image holds it."""
-    off = torch.ones(means.shape[0], dtype=torch.bool, device=means.device)
+    return surface_support(means, views, depths, alphas) == 0
+
+
+@torch.no_grad()
+def surface_support(means: torch.Tensor, views: PinholeViews, depths, alphas) -> torch.Tensor:
+    """[N] int: how many views of `views` show each centre on their rendered surface (as `off_every_surface`). A real
+    surface is rendered there by every view that sees it; a Gaussian that reproduces one view's pixels from the
+    wrong depth, by that view alone."""
+    count = torch.zeros(means.shape[0], dtype=torch.long, device=means.device)
     for k in range(len(views)):
         z, u, v = (t[0] for t in views.pixels(means, slice(k, k + 1)))
         front = z > NEAR_PLANE
@@ -127,6 +139,5 @@ def off_every_surface(means: torch.Tensor, views: PinholeViews, depths, alphas) 
         inside = front & (u >= 0) & (u < depth.shape[1]) & (v >= 0) & (v < depth.shape[0])
         ui, vi = u.clamp(0, depth.shape[1] - 1), v.clamp(0, depth.shape[0] - 1)
         surface, opaque = depth[vi, ui], alpha[vi, ui] >= 0.5
-        on = inside & opaque & ((z - surface).abs() <= SURFACE_TOLERANCE * surface)
-        off &= ~on
-    return off
+        count += inside & opaque & ((z - surface).abs() <= SURFACE_TOLERANCE * surface)
+    return count

@@ -70,6 +70,8 @@ def test_tiny_bench_writes_results_table_plots_and_resumes(tiny_bench, tiny_scen
     assert all(result.with_name(w["image"]).stat().st_size > 1000 for w in farthest.worst_views)
     # each test view's render depths come through to the result (read back from its JSON)
     assert all(0 < v.depth_p10 <= v.depth_median for v in farthest.test_views)
+    # and so does what lies in front of each test camera
+    assert all(v.front_gaussians is not None and v.front_gaussians >= v.front_large >= 0 for v in farthest.test_views)
     assert all(r.num_gaussians and r.num_gaussians > 100 for r in rows)  # the tiny scene starts from 1500 points
     assert all(r.near_culled is None for r in rows) and "near_culled" not in json.loads(result.read_text())  # off
     assert {r.seed_points for r in rows} == {"colmap"}  # `auto` as resolved: the tiny scene has a point cloud

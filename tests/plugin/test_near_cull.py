@@ -118,6 +118,19 @@ def test_a_centre_is_on_a_surface_only_where_a_view_renders_it_there():
     assert off_every_surface(means, two, [depth, near], [alpha, torch.ones(8, 10)]).tolist()[2] is False
 
 
+def test_surface_support_counts_the_views_that_render_a_centre_on_their_surface():
+    from hpgs_ns.render.footprints import surface_support
+
+    cam = one_camera(width=10, height=8, f=10.0)
+    three = PinholeViews(torch.stack([cam.viewmats[0]] * 3), *(torch.cat([t, t, t]) for t in
+                                                               (cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height)))
+    at4, at2 = torch.full((8, 10), 4.0), torch.full((8, 10), 2.0)
+    means = torch.tensor([[0.0, 0.0, 4.0], [0.0, 0.0, 2.0], [0.0, 0.0, 3.0]])
+    # views 1 and 2 render a surface at 4, view 3 at 2; nothing renders one at 3 (25% off 4, 50% off 2)
+    support = surface_support(means, three, [at4, at4, at2], [torch.ones(8, 10)] * 3)
+    assert support.tolist() == [2, 1, 0]
+
+
 def test_training_culls_at_densification_steps_only_and_not_when_off(tiny_scene, tmp_path):
     for on in (True, False):
         trainer = model_trainer(tiny_scene, tmp_path / str(on), near_cull_screen=0.15 if on else 0.0)
@@ -130,7 +143,34 @@ def test_training_culls_at_densification_steps_only_and_not_when_off(tiny_scene,
         assert calls == ([3, 6, 9] if on else [])
 
 
-@pytest.mark.parametrize("flag, value", [("near_cull_screen", -0.1), ("near_cull_screen", 1.0), ("near_cull_depth", 0.0)])
+def test_with_support_two_a_suspect_that_one_training_view_renders_on_its_surface_goes(tiny_scene, tmp_path, capsys):
+    from hpgs_ns.render.footprints import surface_support
+
+    trainer = model_trainer(tiny_scene, tmp_path, near_cull_screen=0.15, near_cull_support=2)
+    model = trainer.pipeline.model
+    assert trainer.pipeline.datamanager.selection_signature["near-cull"] == "0.15 0.25 support 2"
+    assert "unless 2 training views show them on their surfaces" in capsys.readouterr().out
+    train_steps(trainer, range(2))
+    means = model.means.detach().clone()
+    near = near_and_large(means, torch.exp(model.scales.detach()), model.near_cull_views, 0.15, 0.25)
+    support = surface_support(means, *model.training_surfaces())
+    assert (near & (support == 1)).any()  # some suspects have one view's support: support 1 would keep them
+    removed = model.cull_near_large()
+    assert removed == int((near & (support < 2)).sum())
+    assert torch.equal(model.means.detach(), means[~(near & (support < 2))])
+
+
+def test_the_signature_and_the_idle_warning_name_support_only_when_it_is_not_one(tiny_scene, tmp_path, capsys):
+    one = model_trainer(tiny_scene, tmp_path / "one", near_cull_screen=0.15)
+    assert one.pipeline.datamanager.selection_signature["near-cull"] == "0.15 0.25"  # as the first version wrote it
+    capsys.readouterr()
+    idle = model_trainer(tiny_scene, tmp_path / "idle", near_cull_support=2)
+    assert "near-cull" not in idle.pipeline.datamanager.selection_signature
+    assert "--pipeline.model.near-cull-support does nothing in this run: near-cull-screen is 0" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("flag, value", [("near_cull_screen", -0.1), ("near_cull_screen", 1.0), ("near_cull_depth", 0.0),
+                                         ("near_cull_support", 0)])
 def test_values_that_make_no_sense_are_one_line_errors(flag, value):
     from hpgs_ns.model import HpgsSplatfactoModelConfig
 
@@ -158,11 +198,14 @@ def test_in_front_counts_what_lies_between_a_camera_and_its_median_depth():
                    [0.0, 0.0, 3.0],    # 50 px wide but beyond 0.25 x 4: not in front
                    [0.0, 0.0, -0.3]]   # behind the camera
     means, scales = scene_with(extra_means, [[0.05] * 3, [0.001] * 3, [0.5] * 3, [0.05] * 3])
-    front, large = in_front(means, scales, one_camera(), 0, median_depth=4.0)
+    front, large = in_front(means, scales, one_camera(), 0)
     assert front.nonzero().squeeze(1).tolist() == [200, 201] and large.nonzero().squeeze(1).tolist() == [200]
-    # the bound follows the render's median: at 16, the background Gaussian at 3.0 is in front too
-    front, large = in_front(means, scales, one_camera(), 0, median_depth=16.0)
+    # the bound follows the centres' median: with the 200 at depth 16, the background Gaussian at 3.0 is in front too
+    means[:200, 2] = 16.0
+    front, large = in_front(means, scales, one_camera(), 0)
     assert front.nonzero().squeeze(1).tolist() == [200, 201, 202] and large[202]
+    # a camera that holds no centre in its image has nothing in front
+    assert not in_front(means + torch.tensor([100.0, 0.0, 0.0]), scales, one_camera(), 0)[0].any()
 
 
 def test_the_final_eval_says_what_lies_in_front_of_each_test_camera(tiny_scene, tmp_path):
@@ -181,10 +224,11 @@ def test_the_final_eval_says_what_lies_in_front_of_each_test_camera(tiny_scene, 
                         torch.full((1, 3), 200, dtype=torch.uint8), trainer.optimizers)
     with torch.no_grad():
         model.gauss_params["scales"][-1] = torch.log(torch.tensor(0.05))
+        model.gauss_params["opacities"][-1] = torch.logit(torch.tensor(0.99))
     after = json.loads(write_final_eval(trainer, tmp_path / "after.json").read_text())["test_views"][0]
     assert after["front_gaussians"] == before[0]["front_gaussians"] + 1
     assert after["front_large"] == before[0]["front_large"] + 1
+    # opaque and filling the view from 0.05 away: it alone covers nearly all of the image
+    assert after["front_cover"] > 0.9 and all(0.0 <= v["front_cover"] <= 1.0 for v in before)
     assert after["front_large_sigma_max"] == pytest.approx(max(0.05, before[0].get("front_large_sigma_max", 0.0)))
-    assert 0.0 <= after["front_large_on_surface"] <= 1.0
-    # a view without a median depth gets nothing
-    assert model.describe_front(dm.eval_dataset.cameras[:1], [None], dm.train_dataset.cameras[:2]) == [{}]
+    assert 0.0 <= after["front_large_on_two_surfaces"] <= after["front_large_on_surface"] <= 1.0
