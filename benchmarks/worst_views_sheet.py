@@ -62,6 +62,8 @@ def entries(root: Path, rank: int, scenes=None, arms=None, seeds=None, near=None
                 continue
             title += (f"; final-set {theirs['psnr']:.1f} dB\ndepth p10 {mine['depth_p10']:.2f} "
                       f"(final-set {theirs['depth_p10']:.2f})")
+            if mine.get("front_cover") is not None and theirs.get("front_cover") is not None:
+                title += f"; in front cover {mine['front_cover']:.0%} ({theirs['front_cover']:.0%})"
         found.append((view["psnr"], title, result.parent / view["image"]))
     return [(title, path) for _, title, path in sorted(found)]
 
