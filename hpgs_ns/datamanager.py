@@ -221,6 +221,11 @@ class ActiveDatamanager(FullImageDatamanager):
         return [i for i in range(len(self.train_dataset)) if i not in active]
 
     @property
+    def active_cameras(self):
+        """The active views' cameras (`Cameras` [len(active)]), in `active`'s order."""
+        return self.train_dataset.cameras[torch.tensor(self.active, dtype=torch.long)]
+
+    @property
     def initial_views(self) -> List[int]:
         """Active views that no round added."""
         added = {i for h in self.history for i in h.chosen_indices}

@@ -528,15 +528,20 @@ class HpgsSplatfactoModel(SplatfactoModel):
     def training_surfaces(self, cameras: Optional[Cameras] = None) -> Tuple[PinholeViews, List[torch.Tensor], List[torch.Tensor]]:
         """The active training views (or `cameras`) rendered (eval mode, short side at most
         `near_cull_render_short_side`): their cameras at that size, expected depths and opacities ([H, W] each)."""
-        cameras = copy.deepcopy(self.near_cull_training() if cameras is None else cameras)
-        short = torch.minimum(cameras.width, cameras.height).float()
-        cameras.rescale_output_resolution(torch.clamp(self.near_cull_render_short_side / short, max=1.0))
+        cameras = self.small(self.near_cull_training() if cameras is None else cameras)
         depths, alphas = [], []
         for k in range(cameras.shape[0]):
             _, render, alpha = self._eval_render(cameras[k : k + 1], "RGB+ED")
             depths.append(render[0, ..., 3])
             alphas.append(alpha[0, ..., 0])
         return PinholeViews.from_cameras(cameras, self.means.device), depths, alphas
+
+    def small(self, cameras: Cameras) -> Cameras:
+        """A copy of `cameras` with the short side at most `near_cull_render_short_side` (never enlarged)."""
+        cameras = copy.deepcopy(cameras)
+        short = torch.minimum(cameras.width, cameras.height).float()
+        cameras.rescale_output_resolution(torch.clamp(self.near_cull_render_short_side / short, max=1.0))
+        return cameras
 
     @torch.no_grad()
     def cull_near_large(self) -> int:
@@ -574,14 +579,13 @@ class HpgsSplatfactoModel(SplatfactoModel):
         the splat's units: what a 3D-scale prune compares) and the shares of them that one, and two or more, views
         of `training` render on their surface (`surface_support`); {} for an empty splat. Read by the lab beside
         each view's PSNR: what a collapsed view has in front of it."""
+        if self.num_points == 0:
+            return [{} for _ in range(cameras.shape[0])]
         views = PinholeViews.from_cameras(cameras, self.means.device)
         means, scales = self.means.detach(), torch.exp(self.scales.detach())
         out: List[Dict[str, Any]] = []
         surfaces = None
         for k in range(len(views)):
-            if self.num_points == 0:
-                out.append({})
-                continue
             front, large = in_front(means, scales, views, k)
             entry: Dict[str, Any] = {"front_gaussians": int(front.sum()), "front_large": int(large.sum()),
                                      "front_cover": self.cover(cameras[k : k + 1], front) if bool(front.any()) else 0.0}
@@ -600,10 +604,7 @@ class HpgsSplatfactoModel(SplatfactoModel):
     def cover(self, camera: Cameras, gaussians: torch.Tensor) -> float:
         """The mean opacity the Gaussians `gaussians` ([N] bool) alone render over `camera`'s ([1]) image, rendered
         at `near_cull_render_short_side` px on its short side."""
-        camera = copy.deepcopy(camera)
-        short = torch.minimum(camera.width, camera.height).float()
-        camera.rescale_output_resolution(torch.clamp(self.near_cull_render_short_side / short, max=1.0))
-        camera = camera.to(self.device)
+        camera = self.small(camera).to(self.device)
         with self.eval_mode():
             _, alpha, _ = self._rasterize_cameras(camera.camera_to_worlds.reshape(-1, 3, 4),
                                                   camera.get_intrinsics_matrices().reshape(-1, 3, 3),

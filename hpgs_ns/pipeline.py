@@ -14,7 +14,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import List, Optional, Type
 
-import torch
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes
 from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineConfig
 from nerfstudio.utils.rich_utils import CONSOLE
@@ -82,7 +81,7 @@ class HpgsPipeline(VanillaPipeline):
             if training:
                 dm = self.datamanager
                 self.model.near_cull_views = PinholeViews.from_cameras(dm.train_dataset.cameras, self.model.device)
-                self.model.near_cull_training = lambda: dm.train_dataset.cameras[torch.tensor(dm.active, dtype=torch.long)]
+                self.model.near_cull_training = lambda: dm.active_cameras
                 CONSOLE.print(f"near-cull-screen {near_cull:g}: at each densification step, Gaussians nearer than "
                               f"{config.model.near_cull_depth:g} x the median depth of any of the "
                               f"{len(self.model.near_cull_views)} training-split cameras (poses only) and wider than "

@@ -441,9 +441,8 @@ def write_final_eval(trainer: Trainer, path: Path, worst_views: int = 0) -> Path
     test_views = [{"name": n, **m} for n, m in zip(names, per_view)] if named else []
     if test_views and hasattr(model, "describe_front"):
         dm = pipeline.datamanager
-        training = dm.train_dataset.cameras
-        if getattr(dm, "active", None) is not None:  # the views it trained on, not the candidates
-            training = training[torch.tensor(dm.active, dtype=torch.long)]
+        # the views it trained on, not the candidates
+        training = dm.active_cameras if hasattr(dm, "active_cameras") else dm.train_dataset.cameras
         fronts = model.describe_front(dm.eval_dataset.cameras, training)
         test_views = [{**v, **f} for v, f in zip(test_views, fronts)]
     worst_saved = []

@@ -117,19 +117,12 @@ expected depth blends surfaces at edges, so a centre within this of it counts as
 
 
 @torch.no_grad()
-def off_every_surface(means: torch.Tensor, views: PinholeViews, depths, alphas) -> torch.Tensor:
-    """[N] bool: the centres `means` [N, 3] that no view of `views` shows on its rendered surface (`depths[k]`,
+def surface_support(means: torch.Tensor, views: PinholeViews, depths, alphas) -> torch.Tensor:
+    """[N] int: how many views of `views` show each centre `means` [N, 3] on their rendered surface (`depths[k]`,
     `alphas[k]`: view k's expected depth and opacity, [H, W] at that view's size). A centre is on view k's surface
     where it falls in k's image, over a pixel at least half opaque, within SURFACE_TOLERANCE of that pixel's depth
-    (in front of it: k sees through it; behind it: k cannot see it). True also where no view's image holds it."""
-    return surface_support(means, views, depths, alphas) == 0
-
-
-@torch.no_grad()
-def surface_support(means: torch.Tensor, views: PinholeViews, depths, alphas) -> torch.Tensor:
-    """[N] int: how many views of `views` show each centre on their rendered surface (as `off_every_surface`). A real
-    surface is rendered there by every view that sees it; a Gaussian that reproduces one view's pixels from the
-    wrong depth, by that view alone."""
+    (in front of it: k sees through it; behind it: k cannot see it). A real surface is rendered there by every view
+    that sees it; a Gaussian that reproduces one view's pixels from the wrong depth, by that view alone."""
     count = torch.zeros(means.shape[0], dtype=torch.long, device=means.device)
     for k in range(len(views)):
         z, u, v = (t[0] for t in views.pixels(means, slice(k, k + 1)))

@@ -67,7 +67,7 @@ def test_a_second_camera_finds_what_the_first_cannot_see():
 
 
 def test_the_model_removes_what_is_near_wide_and_on_no_training_surface_with_its_optimizer_rows(tiny_scene, tmp_path):
-    from hpgs_ns.render.footprints import off_every_surface
+    from hpgs_ns.render.footprints import surface_support
 
     trainer = model_trainer(tiny_scene, tmp_path, near_cull_screen=0.15)
     model, dm = trainer.pipeline.model, trainer.pipeline.datamanager
@@ -80,14 +80,14 @@ def test_the_model_removes_what_is_near_wide_and_on_no_training_surface_with_its
     assert len(surfaces[0]) == len(dm.active) and max(d.shape[0] for d in surfaces[1]) <= 48  # the 6 active views
     c2w = dm.train_dataset.cameras.camera_to_worlds
     spots = torch.stack([c2w[c, :3, 3] - 0.05 * c2w[c, :3, 2] for c in dm.candidates]).to(model.means.device)
-    floater = spots[off_every_surface(spots, *surfaces)][0]  # 0.05 along a candidate's view (OpenGL -z)
+    floater = spots[surface_support(spots, *surfaces) == 0][0]  # 0.05 along a candidate's view (OpenGL -z)
     model.add_gaussians(floater[None], torch.full((1, 3), 200, dtype=torch.uint8), trainer.optimizers)
     with torch.no_grad():
         model.gauss_params["scales"][-1] = torch.log(torch.tensor(0.05))
         model.gauss_params["opacities"][-1] = torch.logit(torch.tensor(0.02))
     n, means = model.num_points, model.means.detach().clone()
     near = near_and_large(means, torch.exp(model.scales.detach()), views, 0.15, 0.25)
-    off = off_every_surface(means, *model.training_surfaces())
+    off = surface_support(means, *model.training_surfaces()) == 0
     assert near[-1] and off[-1]  # the floater: near and wide before the candidate, on no training surface
     assert (near & ~off).any()  # some near-and-wide Gaussians are on a training view's surface: they stay
     removed = model.cull_near_large()
@@ -100,7 +100,7 @@ def test_the_model_removes_what_is_near_wide_and_on_no_training_surface_with_its
 
 
 def test_a_centre_is_on_a_surface_only_where_a_view_renders_it_there():
-    from hpgs_ns.render.footprints import SURFACE_TOLERANCE, off_every_surface
+    from hpgs_ns.render.footprints import SURFACE_TOLERANCE, surface_support
 
     cam = one_camera(width=10, height=8, f=10.0)
     depth, alpha = torch.full((8, 10), 4.0), torch.ones(8, 10)
@@ -110,12 +110,12 @@ def test_a_centre_is_on_a_surface_only_where_a_view_renders_it_there():
                           [0.0, 0.0, 4.0 * (1 - SURFACE_TOLERANCE) - 0.1],  # clearly in front: off
                           [-1.5, 0.0, 4.0],   # u = 1.25: over a transparent pixel: off
                           [0.0, 0.0, -1.0]])  # behind the camera, in no view: off
-    assert off_every_surface(means, cam, [depth], [alpha]).tolist() == [False, True, True, True, True]
+    assert (surface_support(means, cam, [depth], [alpha]) == 0).tolist() == [False, True, True, True, True]
     # a second view that shows the third centre on its surface keeps it
     near = torch.full((8, 10), 4.0 * (1 - SURFACE_TOLERANCE) - 0.1)
     two = PinholeViews(torch.stack([cam.viewmats[0]] * 2), *(torch.cat([t, t]) for t in
                                                              (cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height)))
-    assert off_every_surface(means, two, [depth, near], [alpha, torch.ones(8, 10)]).tolist()[2] is False
+    assert (surface_support(means, two, [depth, near], [alpha, torch.ones(8, 10)]) == 0).tolist()[2] is False
 
 
 def test_surface_support_counts_the_views_that_render_a_centre_on_their_surface():
