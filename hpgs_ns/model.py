@@ -127,6 +127,12 @@ class HpgsSplatfactoModelConfig(SplatfactoModelConfig):
     is enough. 2: a suspect only one view renders there goes too: a real surface beside a camera is rendered by
     every training view that sees it, a Gaussian that reproduces one view's pixels from the wrong depth by that
     view alone."""
+    near_cull_to_end: bool = False
+    """Keep near-cull-screen acting after densification stops, at densification's interval, to the run's last step.
+    Off: it acts only while densification runs. The Gaussians left in front of the test cameras that collapse in
+    runs are wide (largest sigma, median 0.3, where the same views' final-sets have 0.06) and a 3D-scale prune bound,
+    which acts only while densification runs, did not reach them: they grow after densification stops, when views
+    added late pull on the splat (docs/lab/late-floaters-plan.md)."""
 
     def __post_init__(self) -> None:
         parent = getattr(super(), "__post_init__", None)
@@ -505,7 +511,7 @@ class HpgsSplatfactoModel(SplatfactoModel):
         if self.config.means_lr_by_age:
             self.scale_young_means_steps()
         super().step_post_backward(step - self.step_offset)
-        if self.config.near_cull_screen > 0 and self.is_refine_step():
+        if self.config.near_cull_screen > 0 and self.is_near_cull_step():
             self.cull_near_large()
 
     # ---- Gaussians in front of cameras no training view looks through (near-cull-screen) ------------------------
@@ -523,6 +529,14 @@ class HpgsSplatfactoModel(SplatfactoModel):
         """Whether gsplat's densification ran at this model step (its own test, on this model's clock)."""
         strategy, step = self.strategy, self.step
         return (strategy.refine_start_iter < step < strategy.refine_stop_iter and step % strategy.refine_every == 0)
+
+    def is_near_cull_step(self) -> bool:
+        """Whether near-cull-screen acts at this model step: at densification's steps, and with near-cull-to-end at
+        every step of its interval after it stops."""
+        strategy, step = self.strategy, self.step
+        if self.config.near_cull_to_end and step >= strategy.refine_stop_iter:
+            return step % strategy.refine_every == 0
+        return self.is_refine_step()
 
     @torch.no_grad()
     def training_surfaces(self, cameras: Optional[Cameras] = None) -> Tuple[PinholeViews, List[torch.Tensor], List[torch.Tensor]]:

@@ -76,13 +76,16 @@ class HpgsPipeline(VanillaPipeline):
         if near_cull > 0:  # which Gaussians densification keeps
             support = int(config.model.near_cull_support)
             # support 1 (the first version's rule) keeps the signature checkpoints of that version carry
+            to_end = bool(getattr(config.model, "near_cull_to_end", False))
             signature["near-cull"] = (f"{near_cull:g} {float(config.model.near_cull_depth):g}"
-                                      + (f" support {support}" if support != 1 else ""))
+                                      + (f" support {support}" if support != 1 else "") + (" to end" if to_end else ""))
             if training:
                 dm = self.datamanager
                 self.model.near_cull_views = PinholeViews.from_cameras(dm.train_dataset.cameras, self.model.device)
                 self.model.near_cull_training = lambda: dm.active_cameras
-                CONSOLE.print(f"near-cull-screen {near_cull:g}: at each densification step, Gaussians nearer than "
+                when = "at each densification step" + (" and, once densification stops, at its interval to the "
+                                                        "last step" if to_end else "")
+                CONSOLE.print(f"near-cull-screen {near_cull:g}: {when}, Gaussians nearer than "
                               f"{config.model.near_cull_depth:g} x the median depth of any of the "
                               f"{len(self.model.near_cull_views)} training-split cameras (poses only) and wider than "
                               f"{near_cull:g} of its image are removed unless "
@@ -91,7 +94,8 @@ class HpgsPipeline(VanillaPipeline):
         elif training:
             idle = [f"--pipeline.model.{flag}" for flag, value, default in (
                 ("near-cull-depth", float(getattr(config.model, "near_cull_depth", 0.25)), 0.25),
-                ("near-cull-support", int(getattr(config.model, "near_cull_support", 1)), 1)) if value != default]
+                ("near-cull-support", int(getattr(config.model, "near_cull_support", 1)), 1),
+                ("near-cull-to-end", bool(getattr(config.model, "near_cull_to_end", False)), False)) if value != default]
             if idle:
                 CONSOLE.print(f"[yellow]{' and '.join(idle)} {'does' if len(idle) == 1 else 'do'} nothing in this run: "
                               "near-cull-screen is 0 (off); pass --pipeline.model.near-cull-screen 0.15 to turn the "

@@ -143,6 +143,23 @@ def test_training_culls_at_densification_steps_only_and_not_when_off(tiny_scene,
         assert calls == ([3, 6, 9] if on else [])
 
 
+def test_to_end_the_cull_goes_on_at_densifications_interval_after_densification_stops(tiny_scene, tmp_path, capsys):
+    for to_end in (False, True):
+        trainer = model_trainer(tiny_scene, tmp_path / str(to_end), near_cull_screen=0.15, near_cull_to_end=to_end)
+        model = trainer.pipeline.model
+        calls = []
+        model.cull_near_large = lambda calls=calls, model=model: calls.append(model.step) or 0
+        strategy = model.strategy
+        strategy.refine_start_iter, strategy.refine_every, strategy.refine_stop_iter = 2, 3, 7  # densify at 3, 6
+        train_steps(trainer, range(14))
+        assert calls == ([3, 6, 9, 12] if to_end else [3, 6])
+        signature = trainer.pipeline.datamanager.selection_signature["near-cull"]
+        assert signature == ("0.15 0.25 to end" if to_end else "0.15 0.25")
+        assert ("once densification stops, at its interval to the last step" in capsys.readouterr().out) == to_end
+    model_trainer(tiny_scene, tmp_path / "idle", near_cull_to_end=True)
+    assert "--pipeline.model.near-cull-to-end does nothing in this run: near-cull-screen is 0" in capsys.readouterr().out
+
+
 def test_with_support_two_a_suspect_that_one_training_view_renders_on_its_surface_goes(tiny_scene, tmp_path, capsys):
     from hpgs_ns.render.footprints import surface_support
 
