@@ -229,18 +229,22 @@ def front_summary(views: Sequence) -> dict:
     """What lies in front of these test cameras (`front_*`, where the runs recorded it): the mean opacity the
     Gaussians in front render over the image, the share of views with a large Gaussian in front, the mean count of
     large ones, the median of their largest sigma, and the mean shares of them on one, and on two or more, training
-    views' surfaces. {} where no view recorded it."""
+    views' surfaces, in a training view's image, and flagged by the floater guard's test from a training-split
+    camera. {} where no view recorded it."""
     seen = [v for v in views if v.front_large is not None]
     if not seen:
         return {}
     with_large = [v for v in seen if v.front_large]
     two = [v.front_large_on_two_surfaces for v in with_large if v.front_large_on_two_surfaces is not None]
+    in_view = [v.front_large_in_view for v in with_large if v.front_large_in_view is not None]
+    suspect = [v.front_large_suspect for v in with_large if v.front_large_suspect is not None]
     covers = [v.front_cover for v in seen if v.front_cover is not None]
     return {"views": len(seen), "cover_mean": mean(covers) if covers else None,
             "with_large": len(with_large) / len(seen), "large_mean": mean(v.front_large for v in seen),
             "sigma_max_median": median([v.front_large_sigma_max for v in with_large]) if with_large else None,
             "on_surface_mean": mean(v.front_large_on_surface for v in with_large) if with_large else None,
-            "on_two_surfaces_mean": mean(two) if two else None}
+            "on_two_surfaces_mean": mean(two) if two else None, "in_view_mean": mean(in_view) if in_view else None,
+            "suspect_mean": mean(suspect) if suspect else None}
 
 
 def culled_counts(rows: Sequence[RunResult], final_sets: Sequence[RunResult]) -> Dict[str, dict]:
@@ -295,7 +299,9 @@ def main() -> None:
                 cover = "" if f["cover_mean"] is None else f"they cover {f['cover_mean']:.0%} of the image; "
                 print(f"    in front of the camera, {which} views ({f['views']}): {cover}{f['with_large']:.0%} with a large "
                       f"Gaussian, {f['large_mean']:.1f} large on average, their largest sigma (median) {sigma}, "
-                      f"on a training view's surface {surface}")
+                      f"on a training view's surface {surface}"
+                      + ("" if f["in_view_mean"] is None else f", in a training view's image {f['in_view_mean']:.2f}")
+                      + ("" if f["suspect_mean"] is None else f", the guard's suspects {f['suspect_mean']:.2f}"))
         culled = culled_counts(rows, finals)
         if culled:
             out["near_culled"] = culled

@@ -113,6 +113,8 @@ class ViewMetrics:
     front_large_sigma_max: Optional[float] = None
     front_large_on_surface: Optional[float] = None
     front_large_on_two_surfaces: Optional[float] = None
+    front_large_in_view: Optional[float] = None
+    front_large_suspect: Optional[float] = None
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> ViewMetrics:

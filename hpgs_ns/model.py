@@ -35,7 +35,7 @@ from nerfstudio.models import splatfacto
 from nerfstudio.models.splatfacto import SplatfactoModel, SplatfactoModelConfig
 
 from hpgs_ns.errors import UserError, check_option
-from hpgs_ns.render.footprints import PinholeViews, in_front, near_and_large, surface_support
+from hpgs_ns.render.footprints import FRONT_DEPTH, FRONT_SCREEN, PinholeViews, in_front, near_and_large, reach_any_image, surface_support
 from hpgs_ns.render.pair_render import Splat
 from hpgs_ns.render.rasterize import composite, rasterize_splat
 from hpgs_ns.render.viewmats import world_to_camera
@@ -586,19 +586,23 @@ class HpgsSplatfactoModel(SplatfactoModel):
         return count
 
     @torch.no_grad()
-    def describe_front(self, cameras: Cameras, training: Cameras) -> List[Dict[str, Any]]:
+    def describe_front(self, cameras: Cameras, training: Cameras, split: Optional[Cameras] = None) -> List[Dict[str, Any]]:
         """For each camera of `cameras` (the test views), what lies in front of it (`render.footprints.in_front`):
         `front_gaussians`, `front_cover` (the mean opacity they alone render over its image: the haze they lay on
         it), `front_large` (of those, wide in its image), the large ones' median and largest sigma (largest axis,
-        the splat's units: what a 3D-scale prune compares) and the shares of them that one, and two or more, views
-        of `training` render on their surface (`surface_support`); {} for an empty splat. Read by the lab beside
-        each view's PSNR: what a collapsed view has in front of it."""
+        the splat's units: what a 3D-scale prune compares), the shares of them that one, and two or more, views
+        of `training` render on their surface (`surface_support`), that reach into a `training` view's image
+        (`front_large_in_view`: a view that can pull on them) and, given `split` (the training split's cameras,
+        candidates included), that the floater guard's test flags from one of those cameras at its default bounds
+        (`front_large_suspect`: what near-cull-screen 0.15 could reach, before its surface check); {} for an empty
+        splat. Read by the lab beside each view's PSNR: what a collapsed view has in front of it."""
         if self.num_points == 0:
             return [{} for _ in range(cameras.shape[0])]
-        views = PinholeViews.from_cameras(cameras, self.means.device)
+        device = self.means.device
+        views = PinholeViews.from_cameras(cameras, device)
         means, scales = self.means.detach(), torch.exp(self.scales.detach())
         out: List[Dict[str, Any]] = []
-        surfaces = None
+        surfaces = seen = suspects = None
         for k in range(len(views)):
             front, large = in_front(means, scales, views, k)
             entry: Dict[str, Any] = {"front_gaussians": int(front.sum()), "front_large": int(large.sum()),
@@ -608,9 +612,17 @@ class HpgsSplatfactoModel(SplatfactoModel):
                 if surfaces is None:
                     surfaces = self.training_surfaces(training)
                 support = surface_support(means[large], *surfaces)
+                if seen is None:  # computed once, for every Gaussian: the guard's depth bound is each camera's median
+                    seen = reach_any_image(means, scales, PinholeViews.from_cameras(training, device))
+                    if split is not None:
+                        suspects = near_and_large(means, scales, PinholeViews.from_cameras(split, device),
+                                                  FRONT_SCREEN, FRONT_DEPTH)
                 entry.update(front_large_sigma_median=float(sigma.median()), front_large_sigma_max=float(sigma.max()),
                              front_large_on_surface=float((support >= 1).float().mean()),
-                             front_large_on_two_surfaces=float((support >= 2).float().mean()))
+                             front_large_on_two_surfaces=float((support >= 2).float().mean()),
+                             front_large_in_view=float(seen[large].float().mean()))
+                if suspects is not None:
+                    entry["front_large_suspect"] = float(suspects[large].float().mean())
             out.append(entry)
         return out
 

@@ -443,7 +443,7 @@ def write_final_eval(trainer: Trainer, path: Path, worst_views: int = 0) -> Path
         dm = pipeline.datamanager
         # the views it trained on, not the candidates
         training = dm.active_cameras if hasattr(dm, "active_cameras") else dm.train_dataset.cameras
-        fronts = model.describe_front(dm.eval_dataset.cameras, training)
+        fronts = model.describe_front(dm.eval_dataset.cameras, training, split=dm.train_dataset.cameras)
         test_views = [{**v, **f} for v, f in zip(test_views, fronts)]
     worst_saved = []
     for rank, (psnr, index, image) in enumerate(worst):

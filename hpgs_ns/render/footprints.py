@@ -111,6 +111,16 @@ def in_front(means: torch.Tensor, scales: torch.Tensor, views: PinholeViews, k: 
     return front, front & large
 
 
+@torch.no_grad()
+def reach_any_image(means: torch.Tensor, scales: torch.Tensor, views: PinholeViews, chunk: int = 8) -> torch.Tensor:
+    """[N] bool: the Gaussians whose footprint (as `footprints` measures it) reaches into at least one of `views`'
+    images from in front of the camera: those a render of one of them can pull on."""
+    reached = torch.zeros(means.shape[0], dtype=torch.bool, device=means.device)
+    for start in range(0, len(views), chunk):
+        reached |= footprints(means, scales, views, slice(start, start + chunk), 1.0)[2].any(dim=0)
+    return reached
+
+
 SURFACE_TOLERANCE = 0.2
 """How much nearer than a view's rendered surface (as a fraction of its depth) a centre must lie to be off it: the
 expected depth blends surfaces at edges, so a centre within this of it counts as on the surface."""

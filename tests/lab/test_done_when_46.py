@@ -152,19 +152,22 @@ def test_near_views_count_the_run_views_nearer_than_their_final_sets_and_what_th
     # surface), its final-set none; the rest one view with one large (sigma 0.1, on a surface), two with none
     def front(view, large, sigma=None, on=None):
         extra = {"front_large_sigma_max": sigma, "front_large_on_surface": on,
-                 "front_large_on_two_surfaces": on / 2} if large else {}
+                 "front_large_on_two_surfaces": on / 2, "front_large_in_view": on,
+                 "front_large_suspect": 1 - on} if large else {}
         return dataclasses.replace(view, front_gaussians=large + 5, front_large=large, front_cover=0.1 * large, **extra)
     r0f = dataclasses.replace(r0, test_views=[front(r0.test_views[0], 3, 0.4, 0.25), front(r0.test_views[1], 1, 0.1, 1.0)])
     r1f = dataclasses.replace(r1, test_views=[front(v, 0) for v in r1.test_views])
     f0f = dataclasses.replace(f0, test_views=[front(v, 0) for v in f0.test_views])
     got = done_when.near_views([r0f, r1f], [f0f, f1])["front"]
     assert got["near"] == {"views": 1, "cover_mean": pytest.approx(0.3), "with_large": 1.0, "large_mean": 3.0,
-                           "sigma_max_median": 0.4, "on_surface_mean": 0.25, "on_two_surfaces_mean": 0.125}
+                           "sigma_max_median": 0.4, "on_surface_mean": 0.25, "on_two_surfaces_mean": 0.125,
+                           "in_view_mean": 0.25, "suspect_mean": 0.75}
     assert got["rest"] == {"views": 3, "cover_mean": pytest.approx(0.1 / 3), "with_large": pytest.approx(1 / 3),
                            "large_mean": pytest.approx(1 / 3), "sigma_max_median": 0.1, "on_surface_mean": 1.0,
-                           "on_two_surfaces_mean": 0.5}
+                           "on_two_surfaces_mean": 0.5, "in_view_mean": 1.0, "suspect_mean": 0.0}
     assert got["near, final-set"] == {"views": 1, "cover_mean": 0.0, "with_large": 0.0, "large_mean": 0.0,
-                                      "sigma_max_median": None, "on_surface_mean": None, "on_two_surfaces_mean": None}
+                                      "sigma_max_median": None, "on_surface_mean": None, "on_two_surfaces_mean": None,
+                                      "in_view_mean": None, "suspect_mean": None}
     # runs written before depths were recorded: nothing to say
     bare = [dataclasses.replace(r, test_views=[dataclasses.replace(v, depth_p10=None) for v in r.test_views]) for r in (r0, r1)]
     assert done_when.near_views(bare, [f0, f1]) == {}

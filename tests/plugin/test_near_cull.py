@@ -249,3 +249,40 @@ def test_the_final_eval_says_what_lies_in_front_of_each_test_camera(tiny_scene, 
     assert after["front_cover"] > 0.9 and all(0.0 <= v["front_cover"] <= 1.0 for v in before)
     assert after["front_large_sigma_max"] == pytest.approx(max(0.05, before[0].get("front_large_sigma_max", 0.0)))
     assert 0.0 <= after["front_large_on_two_surfaces"] <= after["front_large_on_surface"] <= 1.0
+    assert set(after) >= {"front_large_in_view", "front_large_suspect"}
+
+
+def test_reach_any_image_is_a_footprint_reaching_into_some_view_from_in_front():
+    from hpgs_ns.render.footprints import reach_any_image
+
+    cam = one_camera()  # 100 x 80, f 100: at depth 4 the image spans x in [-2, 2), y in [-1.6, 1.6)
+    means = torch.tensor([[0.0, 0.0, 4.0],    # centre of the image
+                          [2.1, 0.0, 4.0],    # just right of the image, 0.01 wide: out
+                          [2.1, 0.0, 4.0],    # the same place, 0.1 wide: its 3-sigma footprint reaches in
+                          [0.0, 0.0, -4.0]])  # behind the camera
+    scales = torch.tensor([[0.01] * 3, [0.01] * 3, [0.1] * 3, [1.0] * 3])
+    assert reach_any_image(means, scales, cam).tolist() == [True, False, True, False]
+    moved = torch.eye(4)
+    moved[0, 3] = -2.0  # a second camera 2 to the right (world x 2.1 -> its x 0.1): sees the second
+    two = PinholeViews(torch.stack([torch.eye(4), moved]), *(torch.cat([t, t]) for t in
+                                                             (cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height)))
+    assert reach_any_image(means, scales, two).tolist() == [True, True, True, False]
+
+
+def test_the_shares_in_view_and_suspect_follow_the_training_cameras_and_the_split(tiny_scene, tmp_path):
+    trainer = model_trainer(tiny_scene, tmp_path, near_cull_screen=0.0)
+    model, dm = trainer.pipeline.model, trainer.pipeline.datamanager
+    train_steps(trainer, range(2))
+    test = dm.eval_dataset.cameras
+    c2w = test.camera_to_worlds[0]
+    model.add_gaussians((c2w[:3, 3] - 0.05 * c2w[:3, 2])[None].to(model.means.device),
+                        torch.full((1, 3), 200, dtype=torch.uint8), trainer.optimizers)
+    with torch.no_grad():
+        model.gauss_params["scales"][-1] = torch.log(torch.tensor(0.05))
+    # the test camera itself as the only "training" view and the only split camera: the floater lies in its image
+    # and is near and wide there, so every large Gaussian in front of it counts as both
+    mine = model.describe_front(test[0:1], test[0:1], split=test[0:1])[0]
+    assert mine["front_large"] >= 1 and mine["front_large_in_view"] == 1.0 and mine["front_large_suspect"] == 1.0
+    # without a split no suspect share is written; training views that look elsewhere see a smaller share
+    far = model.describe_front(test[0:1], dm.active_cameras)[0]
+    assert "front_large_suspect" not in far and 0.0 <= far["front_large_in_view"] <= 1.0
