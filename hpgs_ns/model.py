@@ -131,8 +131,8 @@ class HpgsSplatfactoModelConfig(SplatfactoModelConfig):
     """Keep near-cull-screen acting after densification stops, at densification's interval, to the run's last step.
     Off: it acts only while densification runs. The Gaussians left in front of the test cameras that collapse in
     runs are wide (largest sigma, median 0.3, where the same views' final-sets have 0.06) and a 3D-scale prune bound,
-    which acts only while densification runs, did not reach them: they grow after densification stops, when views
-    added late pull on the splat (docs/lab/late-floaters-plan.md)."""
+    which acts only while densification runs, did not reach them: they seem to grow after densification stops, when
+    views added late pull on the splat; its pilot decides (docs/lab/late-floaters-plan.md)."""
 
     def __post_init__(self) -> None:
         parent = getattr(super(), "__post_init__", None)
