@@ -111,7 +111,7 @@ class HpgsSplatfactoModelConfig(SplatfactoModelConfig):
     restart at 11400, about 1/15 of the start rate). Every Gaussian ends at the final rate. Off: one schedule for
     all. Gaussians in view from the run's (or a restart's) first pass keep the shared schedule, so with no view
     added it barely acts."""
-    near_cull_screen: float = 0.0
+    near_cull_screen: Optional[float] = None
     """At each densification step (while densification runs), also remove the Gaussians that, seen from any camera
     of the training split, the candidates' included (their poses, never their photos), lie nearer than
     near-cull-depth x that camera's median depth and cover more than this fraction of its larger image side
@@ -119,14 +119,16 @@ class HpgsSplatfactoModelConfig(SplatfactoModelConfig):
     wall beside a candidate camera that the training views see stays). Such Gaussians float in front of cameras no training view
     looks through, where gsplat's own screen-size cull, which sees only the training view, cannot find them; in
     runs that started from random points they darken the test views beside those cameras
-    (docs/lab/floater-guard-plan.md). 0: off."""
+    (docs/lab/floater-guard-plan.md). Unset (the default): 0.15 for a splat that starts from the active views'
+    points (`seed-points active`, or `auto` on a capture without a point cloud), where those floaters grow; off for
+    the other starts, where it was not judged. 0: off for every start."""
     near_cull_depth: float = 0.25
     """near-cull-screen's depth bound, as a fraction of each camera's median depth of the Gaussians in its image."""
-    near_cull_support: int = 1
-    """How many active training views must render a near-cull-screen suspect on their surface for it to stay. 1: one
-    is enough. 2: a suspect only one view renders there goes too: a real surface beside a camera is rendered by
-    every training view that sees it, a Gaussian that reproduces one view's pixels from the wrong depth by that
-    view alone."""
+    near_cull_support: int = 2
+    """How many active training views must render a near-cull-screen suspect on their surface for it to stay. 2: a
+    suspect only one view renders there goes too: a real surface beside a camera is rendered by every training view
+    that sees it, a Gaussian that reproduces one view's pixels from the wrong depth by that view alone. 1: one is
+    enough (the guard's first version)."""
     near_cull_to_end: bool = False
     """Keep near-cull-screen acting after densification stops, at densification's interval, to the run's last step.
     Off: it acts only while densification runs. The Gaussians left in front of the test cameras that collapse in
@@ -139,12 +141,26 @@ class HpgsSplatfactoModelConfig(SplatfactoModelConfig):
         if parent is not None:
             parent()
         flag = "--pipeline.model."
-        check_option(flag + "near-cull-screen", self.near_cull_screen, 0 <= self.near_cull_screen < 1,
+        check_option(flag + "near-cull-screen", self.near_cull_screen,
+                     self.near_cull_screen is None or 0 <= self.near_cull_screen < 1,
                      "must be at least 0 and below 1 (a fraction of the image's larger side)", "0 turns it off")
         check_option(flag + "near-cull-depth", self.near_cull_depth, 0 < self.near_cull_depth <= 1,
                      "must be above 0 and at most 1 (a fraction of each camera's median depth)")
         check_option(flag + "near-cull-support", self.near_cull_support, self.near_cull_support >= 1,
                      "must be at least 1 (training views)", "pass 1 (one view is enough) or 2")
+
+
+ACTIVE_START_NEAR_CULL = 0.15
+"""near-cull-screen where it is left unset and the splat starts from the active views' points: the guard that met
+#46's real6 judge with near-cull-support 2 (docs/lab/late-floaters-plan.md)."""
+
+
+def near_cull_screen_for(config: HpgsSplatfactoModelConfig, seed_points: str) -> float:
+    """near-cull-screen as a run uses it: the option where set, else by the start (`seed_points`, the datamanager's
+    resolved mode)."""
+    if config.near_cull_screen is not None:
+        return float(config.near_cull_screen)
+    return ACTIVE_START_NEAR_CULL if seed_points == "active" else 0.0
 
 
 class HpgsSplatfactoModel(SplatfactoModel):
@@ -511,11 +527,14 @@ class HpgsSplatfactoModel(SplatfactoModel):
         if self.config.means_lr_by_age:
             self.scale_young_means_steps()
         super().step_post_backward(step - self.step_offset)
-        if self.config.near_cull_screen > 0 and self.is_near_cull_step():
+        if self.near_cull_screen > 0 and self.is_near_cull_step():
             self.cull_near_large()
 
     # ---- Gaussians in front of cameras no training view looks through (near-cull-screen) ------------------------
 
+    near_cull_screen: float = 0.0
+    """near-cull-screen as this run uses it (`near_cull_screen_for`: the pipeline sets it from the option and the
+    start); 0: off."""
     near_cull_views: Optional[PinholeViews] = None
     """The cameras near-cull-screen looks from: the training split's, active and candidate (the pipeline sets them)."""
     near_cull_training: Optional[Callable[[], Cameras]] = None
@@ -570,7 +589,7 @@ class HpgsSplatfactoModel(SplatfactoModel):
             return 0
         means = self.means.detach()
         mask = near_and_large(means, torch.exp(self.scales.detach()), self.near_cull_views,
-                              self.config.near_cull_screen, self.config.near_cull_depth)
+                              self.near_cull_screen, self.config.near_cull_depth)
         if bool(mask.any()) and self.near_cull_training is not None:
             views, depths, alphas = self.training_surfaces()
             picked = mask.nonzero().squeeze(1)

@@ -20,6 +20,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 
 from hpgs_ns import compat
 from hpgs_ns.errors import OptionError
+from hpgs_ns.model import near_cull_screen_for
 from hpgs_ns.render.footprints import PinholeViews
 from hpgs_ns.selection.config import SelectionConfig
 from hpgs_ns.selection.rounds import SelectionRounds
@@ -72,7 +73,9 @@ class HpgsPipeline(VanillaPipeline):
             signature["means-lr-by-age"] = "True"
         if getattr(self.datamanager.config, "random_points", "cube") != "cube":  # restarts draw the splat's points again
             signature["random-points"] = str(self.datamanager.config.random_points)
-        near_cull = float(getattr(config.model, "near_cull_screen", 0.0))
+        has_near_cull = hasattr(config.model, "near_cull_screen")  # an hpgs model (the guard is its option)
+        near_cull = near_cull_screen_for(config.model, signature["seed-points"]) if has_near_cull else 0.0
+        self.model.near_cull_screen = near_cull
         if near_cull > 0:  # which Gaussians densification keeps
             support = int(config.model.near_cull_support)
             # support 1 (the first version's rule) keeps the signature checkpoints of that version carry
@@ -85,7 +88,8 @@ class HpgsPipeline(VanillaPipeline):
                 self.model.near_cull_training = lambda: dm.active_cameras
                 when = "at each densification step" + (" and, once densification stops, at its interval to the "
                                                         "last step" if to_end else "")
-                CONSOLE.print(f"near-cull-screen {near_cull:g}: {when}, Gaussians nearer than "
+                by_start = " (the active start's default)" if config.model.near_cull_screen is None else ""
+                CONSOLE.print(f"near-cull-screen {near_cull:g}{by_start}: {when}, Gaussians nearer than "
                               f"{config.model.near_cull_depth:g} x the median depth of any of the "
                               f"{len(self.model.near_cull_views)} training-split cameras (poses only) and wider than "
                               f"{near_cull:g} of its image are removed unless "
@@ -94,11 +98,13 @@ class HpgsPipeline(VanillaPipeline):
         elif training:
             idle = [f"--pipeline.model.{flag}" for flag, value, default in (
                 ("near-cull-depth", float(getattr(config.model, "near_cull_depth", 0.25)), 0.25),
-                ("near-cull-support", int(getattr(config.model, "near_cull_support", 1)), 1),
+                ("near-cull-support", int(getattr(config.model, "near_cull_support", 2)), 2),
                 ("near-cull-to-end", bool(getattr(config.model, "near_cull_to_end", False)), False)) if value != default]
             if idle:
+                off = ("0 (off)" if getattr(config.model, "near_cull_screen", None) is not None
+                       else "off by default for this start")
                 CONSOLE.print(f"[yellow]{' and '.join(idle)} {'does' if len(idle) == 1 else 'do'} nothing in this run: "
-                              "near-cull-screen is 0 (off); pass --pipeline.model.near-cull-screen 0.15 to turn the "
+                              f"near-cull-screen is {off}; pass --pipeline.model.near-cull-screen 0.15 to turn the "
                               "cull on", soft_wrap=True)
         self.datamanager.selection_signature = signature
         self.rounds: Optional[SelectionRounds] = selection.setup(datamanager=self.datamanager, model=self.model) if training else None

@@ -379,6 +379,16 @@ def seeded_restarts_key(saved: Dict[str, str], now: Dict[str, str]) -> Dict[str,
     return out
 
 
+def near_cull_flags(saved: Optional[str]) -> str:
+    """The near-cull options that give a checkpoint's "near-cull" signature back (`None`: it had none)."""
+    if saved is None:
+        return "--pipeline.model.near-cull-screen 0: the active start had no floater guard before 0.4"
+    words = saved.split()
+    flags = f"--pipeline.model.near-cull-screen {words[0]} --pipeline.model.near-cull-depth {words[1]}"
+    flags += f" --pipeline.model.near-cull-support {words[words.index('support') + 1] if 'support' in words else 1}"
+    return flags + (" --pipeline.model.near-cull-to-end True" if saved.endswith("to end") else "")
+
+
 def check_resume_matches(pipeline) -> None:
     """Refuse (one line) a resume whose selection options differ from those the checkpoint was trained with: the
     round log would mix two selectors' or schedules' choices."""
@@ -403,6 +413,8 @@ def check_resume_matches(pipeline) -> None:
         if "selector" in changed and saved.get("selector"):
             hint += (f" (--pipeline.selection.selector {saved['selector']}"
                      + (": the default was hpgs before farthest" if saved["selector"] == "hpgs" else "") + ")")
+        if "near-cull" in changed:
+            hint += f" ({near_cull_flags(saved.get('near-cull'))})"
         if SEEDED_RESTARTS in changed and saved.get(SEEDED_RESTARTS) == "False":
             hint += " (--pipeline.selection.after-add.restart-seeded-starts False: seeded starts did not restart before)"
         raise CheckpointError(f"this resume changes what the checkpoint was trained with ({diff}); resume with the "
@@ -459,7 +471,7 @@ def write_final_eval(trainer: Trainer, path: Path, worst_views: int = 0) -> Path
         "worst_views": worst_saved,
         "num_gaussians": int(getattr(model, "num_points", 0)),
     }
-    if getattr(getattr(model, "config", None), "near_cull_screen", 0) > 0:
+    if getattr(model, "near_cull_screen", 0) > 0:  # as resolved for the run's start
         payload["near_culled"] = int(model.near_culled)
     return write_json_atomic(path, payload)
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 import torch
-from conftest import model_trainer
+from conftest import model_trainer, short_config
 from helpers import train_steps
 
 from hpgs_ns.errors import OptionError
@@ -69,7 +69,7 @@ def test_a_second_camera_finds_what_the_first_cannot_see():
 def test_the_model_removes_what_is_near_wide_and_on_no_training_surface_with_its_optimizer_rows(tiny_scene, tmp_path):
     from hpgs_ns.render.footprints import surface_support
 
-    trainer = model_trainer(tiny_scene, tmp_path, near_cull_screen=0.15)
+    trainer = model_trainer(tiny_scene, tmp_path, near_cull_screen=0.15, near_cull_support=1)  # one surface keeps
     model, dm = trainer.pipeline.model, trainer.pipeline.datamanager
     views = model.near_cull_views
     assert views is not None and len(views) == len(dm.train_dataset)  # active + candidates
@@ -154,10 +154,11 @@ def test_to_end_the_cull_goes_on_at_densifications_interval_after_densification_
         train_steps(trainer, range(14))
         assert calls == ([3, 6, 9, 12] if to_end else [3, 6])
         signature = trainer.pipeline.datamanager.selection_signature["near-cull"]
-        assert signature == ("0.15 0.25 to end" if to_end else "0.15 0.25")
+        assert signature == ("0.15 0.25 support 2 to end" if to_end else "0.15 0.25 support 2")
         assert ("once densification stops, at its interval to the last step" in capsys.readouterr().out) == to_end
-    model_trainer(tiny_scene, tmp_path / "idle", near_cull_to_end=True)
-    assert "--pipeline.model.near-cull-to-end does nothing in this run: near-cull-screen is 0" in capsys.readouterr().out
+    model_trainer(tiny_scene, tmp_path / "idle", near_cull_to_end=True)  # the capture's points: off by default
+    assert ("--pipeline.model.near-cull-to-end does nothing in this run: near-cull-screen is off by default for this "
+            "start") in capsys.readouterr().out
 
 
 def test_with_support_two_a_suspect_that_one_training_view_renders_on_its_surface_goes(tiny_scene, tmp_path, capsys):
@@ -178,12 +179,61 @@ def test_with_support_two_a_suspect_that_one_training_view_renders_on_its_surfac
 
 
 def test_the_signature_and_the_idle_warning_name_support_only_when_it_is_not_one(tiny_scene, tmp_path, capsys):
-    one = model_trainer(tiny_scene, tmp_path / "one", near_cull_screen=0.15)
+    one = model_trainer(tiny_scene, tmp_path / "one", near_cull_screen=0.15, near_cull_support=1)
     assert one.pipeline.datamanager.selection_signature["near-cull"] == "0.15 0.25"  # as the first version wrote it
-    capsys.readouterr()
-    idle = model_trainer(tiny_scene, tmp_path / "idle", near_cull_support=2)
+    assert "unless a training view shows them on its surface" in capsys.readouterr().out
+    idle = model_trainer(tiny_scene, tmp_path / "idle", near_cull_screen=0.0, near_cull_support=1)
     assert "near-cull" not in idle.pipeline.datamanager.selection_signature
-    assert "--pipeline.model.near-cull-support does nothing in this run: near-cull-screen is 0" in capsys.readouterr().out
+    assert "--pipeline.model.near-cull-support does nothing in this run: near-cull-screen is 0 (off)" in capsys.readouterr().out
+
+
+def test_unset_the_guard_is_on_for_the_active_start_and_off_for_the_capture_points(tiny_scene, tmp_path, capsys):
+    from hpgs_ns.model import ACTIVE_START_NEAR_CULL
+
+    # tiny_scene has a point cloud: `auto` starts from it, and the guard stays off
+    seeded = model_trainer(tiny_scene, tmp_path / "seeded")
+    assert seeded.pipeline.datamanager.seed_points_mode == "colmap"
+    assert seeded.pipeline.model.near_cull_screen == 0.0 and seeded.pipeline.model.near_cull_views is None
+    assert "near-cull" not in seeded.pipeline.datamanager.selection_signature
+    capsys.readouterr()
+    cfg = short_config(tiny_scene, tmp_path / "active", steps=12, rounds=0, seed_points="active")
+    active = cfg.setup(local_rank=0, world_size=1)
+    active.setup()
+    model = active.pipeline.model
+    assert ACTIVE_START_NEAR_CULL == 0.15 and model.near_cull_screen == 0.15
+    assert model.near_cull_views is not None and len(model.near_cull_views) == len(active.pipeline.datamanager.train_dataset)
+    assert active.pipeline.datamanager.selection_signature["near-cull"] == "0.15 0.25 support 2"
+    assert "near-cull-screen 0.15 (the active start's default): at each densification step" in capsys.readouterr().out
+    # 0 turns it off for that start too
+    cfg = short_config(tiny_scene, tmp_path / "active-off", steps=12, rounds=0, seed_points="active")
+    cfg.pipeline.model.near_cull_screen = 0.0
+    off = cfg.setup(local_rank=0, world_size=1)
+    off.setup()
+    assert off.pipeline.model.near_cull_screen == 0.0 and "near-cull" not in off.pipeline.datamanager.selection_signature
+
+
+def test_a_resume_across_the_guards_default_names_the_flags_that_give_the_checkpoint_back():
+    from types import SimpleNamespace
+
+    from hpgs_ns.trainer import CheckpointError, check_resume_matches
+
+    now = {"selector": "random", "seed-points": "active", "near-cull": "0.15 0.25 support 2"}
+
+    def resume(saved):
+        check_resume_matches(SimpleNamespace(datamanager=SimpleNamespace(loaded_selection_signature=saved,
+                                                                         selection_signature=now)))
+
+    resume(dict(now))
+    # an active run from before the default had no guard
+    with pytest.raises(CheckpointError, match=r"near-cull: checkpoint \(unset\), now 0.15 0.25 support 2.*"
+                                              r"--pipeline.model.near-cull-screen 0: the active start had no floater"):
+        resume({k: v for k, v in now.items() if k != "near-cull"})
+    # the guard's first version (support 1), and one kept on to the end
+    with pytest.raises(CheckpointError, match="near-cull-screen 0.15 --pipeline.model.near-cull-depth 0.25 "
+                                              "--pipeline.model.near-cull-support 1\\)"):
+        resume({**now, "near-cull": "0.15 0.25"})
+    with pytest.raises(CheckpointError, match="near-cull-support 2 --pipeline.model.near-cull-to-end True"):
+        resume({**now, "near-cull": "0.15 0.25 support 2 to end"})
 
 
 @pytest.mark.parametrize("flag, value", [("near_cull_screen", -0.1), ("near_cull_screen", 1.0), ("near_cull_depth", 0.0),
