@@ -119,7 +119,7 @@ class HpgsSplatfactoModelConfig(SplatfactoModelConfig):
     wall beside a candidate camera that the training views see stays). Such Gaussians float in front of cameras no training view
     looks through, where gsplat's own screen-size cull, which sees only the training view, cannot find them; in
     runs that started from random points they darken the test views beside those cameras
-    (docs/lab/floater-guard-plan.md). Unset (the default): 0.15 for a splat that starts from the active views'
+    (docs/lab/floater-guard-plan.md). None (the default): 0.15 for a splat that starts from the active views'
     points (`seed-points active`, or `auto` on a capture without a point cloud), where those floaters grow; off for
     the other starts, where it was not judged. 0: off for every start."""
     near_cull_depth: float = 0.25
