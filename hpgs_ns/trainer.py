@@ -407,7 +407,10 @@ def check_resume_matches(pipeline) -> None:
     saved = seeded_restarts_key(saved, now)
     changed = [key for key in sorted(set(saved) | set(now)) if saved.get(key) != now.get(key)]
     if changed:
-        diff = "; ".join(f"{key}: checkpoint {saved.get(key, '(unset)')}, now {now.get(key, '(unset)')}" for key in changed)
+        def shown(signature: Dict[str, str], key: str) -> str:
+            return signature.get(key, "off" if key == "near-cull" else "(unset)")  # the guard's key exists only when on
+
+        diff = "; ".join(f"{key}: checkpoint {shown(saved, key)}, now {shown(now, key)}" for key in changed)
         hint = (" (--pipeline.datamanager.seed-points as it was trained: the default was colmap before auto)"
                 if "seed-points" in changed else "")
         if "selector" in changed and saved.get("selector"):

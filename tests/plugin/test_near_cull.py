@@ -225,7 +225,7 @@ def test_a_resume_across_the_guards_default_names_the_flags_that_give_the_checkp
 
     resume(dict(now))
     # an active run from before the default had no guard
-    with pytest.raises(CheckpointError, match=r"near-cull: checkpoint \(unset\), now 0.15 0.25 support 2.*"
+    with pytest.raises(CheckpointError, match=r"near-cull: checkpoint off, now 0.15 0.25 support 2.*"
                                               r"--pipeline.model.near-cull-screen 0: the active start had no floater"):
         resume({k: v for k, v in now.items() if k != "near-cull"})
     # the guard's first version (support 1), and one kept on to the end
@@ -234,6 +234,10 @@ def test_a_resume_across_the_guards_default_names_the_flags_that_give_the_checkp
         resume({**now, "near-cull": "0.15 0.25"})
     with pytest.raises(CheckpointError, match="near-cull-support 2 --pipeline.model.near-cull-to-end True"):
         resume({**now, "near-cull": "0.15 0.25 support 2 to end"})
+    # and the other way: a guarded checkpoint resumed with the guard off
+    with pytest.raises(CheckpointError, match=r"near-cull: checkpoint 0.15 0.25 support 2, now off"):
+        check_resume_matches(SimpleNamespace(datamanager=SimpleNamespace(
+            loaded_selection_signature=now, selection_signature={k: v for k, v in now.items() if k != "near-cull"})))
 
 
 @pytest.mark.parametrize("flag, value", [("near_cull_screen", -0.1), ("near_cull_screen", 1.0), ("near_cull_depth", 0.0),
