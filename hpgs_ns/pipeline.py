@@ -11,7 +11,7 @@ viewer is on, and each round redraws it.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import List, Optional, Type
 
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes
@@ -95,14 +95,13 @@ class HpgsPipeline(VanillaPipeline):
                               f"{near_cull:g} of its image are removed unless "
                               + ("a training view shows them on its surface" if support == 1 else
                                  f"{support} training views show them on their surfaces"), soft_wrap=True)
-        elif training:
-            idle = [f"--pipeline.model.{flag}" for flag, value, default in (
-                ("near-cull-depth", float(getattr(config.model, "near_cull_depth", 0.25)), 0.25),
-                ("near-cull-support", int(getattr(config.model, "near_cull_support", 2)), 2),
-                ("near-cull-to-end", bool(getattr(config.model, "near_cull_to_end", False)), False)) if value != default]
+        elif training and has_near_cull:
+            defaults = {f.name: f.default for f in fields(config.model)}  # the config's own, so they cannot drift
+            idle = [f"--pipeline.model.{name.replace('_', '-')}" for name in ("near_cull_depth", "near_cull_support",
+                                                                              "near_cull_to_end")
+                    if getattr(config.model, name) != defaults[name]]
             if idle:
-                off = ("0 (off)" if getattr(config.model, "near_cull_screen", None) is not None
-                       else "off by default for this start")
+                off = "0 (off)" if config.model.near_cull_screen is not None else "off by default for this start"
                 CONSOLE.print(f"[yellow]{' and '.join(idle)} {'does' if len(idle) == 1 else 'do'} nothing in this run: "
                               f"near-cull-screen is {off}; pass --pipeline.model.near-cull-screen 0.15 to turn the "
                               "cull on", soft_wrap=True)
