@@ -44,6 +44,12 @@ class SelectionLoopConfig(InstantiateConfig):
     """Explicit round steps (e.g. FisherRF's 400 900 1500 ...); when given, select-every is ignored."""
     views_per_round: int = 1
     """Views added per round (greedy batch selection when > 1)."""
+    shortlist: Optional[SelectorName] = None
+    """A selector that keeps its best shortlist-size share of the candidates each round; the chosen selector then
+    ranks only those (e.g. `--pipeline.selection.shortlist farthest --pipeline.selection.selector fisher`). The
+    shortlisting selector's options are its own group's. Default: the chosen selector ranks every candidate."""
+    shortlist_size: float = 0.2
+    """With shortlist: the share of the candidates it keeps (0 < share <= 1; at least one view)."""
     max_rounds: int = 7
     """Rounds before selection stops (HP-GS: 7 additions over 15000 steps)."""
     eval_each_round: bool = False
@@ -94,6 +100,31 @@ class SelectionLoopConfig(InstantiateConfig):
                 flag = (given_as or {}).get(name, f"--pipeline.selection.{name.replace('_', '-')}")
                 check_option(flag, value, ok(value), need, fix)
 
+    def build_selector(self):
+        """The run's selector: the chosen one, ranking the shortlist's share of the candidates when `shortlist` is
+        set (never under `random`, which stays a uniform baseline: `shortlist_notes` says so at start)."""
+        chosen = self.selector_config().setup()
+        if self.shortlist is None or self.selector == "random":
+            return chosen
+        from hpgs_ns.selectors.shortlist import ShortlistSelector
+
+        return ShortlistSelector(self.selector_config(self.shortlist).setup(), chosen, self.shortlist_size, self.shortlist)
+
+    def shortlist_notes(self) -> List[str]:
+        """Start-up lines for shortlist options that change nothing in this run."""
+        if self.shortlist is None:
+            if self.shortlist_size != SelectionLoopConfig.shortlist_size:
+                return [f"--pipeline.selection.shortlist-size {self.shortlist_size:g} does nothing in this run: no "
+                        "shortlist (add --pipeline.selection.shortlist NAME)"]
+            return []
+        if self.selector == "random":
+            return [f"--pipeline.selection.shortlist {self.shortlist} changes nothing in this run: the selector is "
+                    "random, which picks uniformly from every candidate (it is the baseline)"]
+        if self.shortlist_size >= 1:
+            return [f"--pipeline.selection.shortlist {self.shortlist} changes nothing in this run: shortlist-size 1 "
+                    "keeps every candidate"]
+        return []
+
     def selector_config(self, name: Optional[str] = None) -> SelectorConfig:
         """The options of selector `name` (default: the chosen one): its group above for a built-in one, else the
         registry's defaults."""
@@ -110,7 +141,7 @@ class SelectionLoopConfig(InstantiateConfig):
         idle = []
         for name in selector_names():
             group = getattr(self, option_group(name), None)
-            if name == self.selector or not isinstance(group, SelectorConfig):
+            if name in (self.selector, self.shortlist) or not isinstance(group, SelectorConfig):
                 continue
             default = registry.selector_config(name)
             idle += [f"--pipeline.selection.{name}.{f.name.replace('_', '-')}" for f in fields(group)
@@ -125,10 +156,15 @@ class SelectionLoopConfig(InstantiateConfig):
                      "reset-after-add": str(bool(self.reset_after_add)),
                      # restart-seeded-starts has its own key where it acts (the pipeline's), since its default changed
                      "after-add": self.after_add.describe(skip=("restart_seeded_starts",))}
-        options = self.selector_config()
-        for f in fields(options):
-            if not f.name.startswith("_"):
-                signature[f"{self.selector}.{f.name.replace('_', '-')}"] = str(getattr(options, f.name))
+        used = [self.selector]
+        if self.shortlist is not None and self.selector != "random":  # keys only when set: older checkpoints match
+            signature.update({"shortlist": str(self.shortlist), "shortlist-size": str(self.shortlist_size)})
+            used.append(self.shortlist)
+        for name in dict.fromkeys(used):
+            options = self.selector_config(name)
+            for f in fields(options):
+                if not f.name.startswith("_"):
+                    signature[f"{name}.{f.name.replace('_', '-')}"] = str(getattr(options, f.name))
         return signature
 
 
@@ -140,6 +176,10 @@ VALUE_RULES = {
                      "pass 0 for no periodic rounds, or --pipeline.selection.select-at STEP ..."),
     "select_at": (lambda v: all(s >= 1 for s in v), "round steps must be >= 1 (no round runs at step 0)",
                   "drop the steps below 1"),
+    "shortlist": (lambda v: v in selector_names(), "unknown selector",
+                  "choose one of " + ", ".join(selector_names()) + " (or install the package that registers it)"),
+    "shortlist_size": (lambda v: math.isfinite(v) and 0 < v <= 1, "must be a share of the candidates in (0, 1]",
+                       "pass e.g. 0.2 (the best 20%)"),
     "views_per_round": (lambda v: v >= 1, "must be at least 1 (the views each round adds)",
                         "pass 1 or more (--pipeline.selection.max-rounds 0 runs no rounds)"),
     "max_rounds": (lambda v: v >= 0, "must be >= 0", "pass 0 for no rounds"),

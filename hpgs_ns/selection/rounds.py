@@ -51,7 +51,7 @@ class SelectionRounds:
         self.seed = int(datamanager.config.seed)
         self.schedule = Every(config.select_every, config.select_at)
         # A run without rounds (a final-set, `max-rounds 0`) never builds its selector: no preference model to load.
-        self._selector = selector if selector is not None or config.max_rounds == 0 else config.selector_config().setup()
+        self._selector = selector if selector is not None or config.max_rounds == 0 else config.build_selector()
         self.run_dir: Optional[Path] = None
         # Called with each round's record once it is logged (the viewer redraws the roles).
         self.listeners: List[Callable[[RoundRecord], None]] = []
@@ -66,7 +66,7 @@ class SelectionRounds:
     @property
     def selector(self) -> Selector:
         if self._selector is None:
-            self._selector = self.config.selector_config().setup()
+            self._selector = self.config.build_selector()
         return self._selector
 
     @selector.setter
@@ -135,6 +135,24 @@ class SelectionRounds:
             return count, f"only {candidates} withheld views to add ({cfg.views_per_round} per round)"
         return count, too_late
 
+    def check_shortlist(self, rounds: int) -> None:
+        """At start: a shortlist that would keep fewer views than a round adds, in the last of `rounds` rounds (the
+        smallest pool), is one line now rather than a failure hours in."""
+        from hpgs_ns.selectors.shortlist import shortlist_count
+
+        cfg = self.config
+        if cfg.shortlist is None or cfg.selector == "random":
+            return
+        pool = len(self.datamanager.candidates) - (rounds - 1) * cfg.views_per_round
+        if pool <= 0:
+            return
+        kept = shortlist_count(cfg.shortlist_size, pool)
+        if kept < min(cfg.views_per_round, pool):
+            raise RoundError(
+                f"--pipeline.selection.shortlist-size {cfg.shortlist_size:g} keeps {kept} of the last round's {pool} "
+                f"candidates, fewer than the {cfg.views_per_round} views a round adds; raise it to at least "
+                f"{min(cfg.views_per_round / pool, 1):.2f} or lower --pipeline.selection.views-per-round")
+
     def callbacks(self, attrs: TrainingCallbackAttributes) -> List[TrainingCallback]:
         """The BEFORE_TRAIN_ITERATION callback that runs rounds (and resets), and one that writes the final log.
         Says at start when fewer rounds than `max_rounds` will run, and why."""
@@ -159,6 +177,10 @@ class SelectionRounds:
                     what = f"only {total} of {self.config.max_rounds} selection rounds will run"
                     what += f" ({ran} before the checkpoint, {count} from step {first})" if ran else ""
                 CONSOLE.print(f"[yellow]{what}: {why}", soft_wrap=True)
+        for note in self.config.shortlist_notes():
+            CONSOLE.print(f"[yellow]{note}", soft_wrap=True)
+        if count:
+            self.check_shortlist(count)
         idle = self.config.idle_selector_options()
         if idle:  # options of a selector this run does not use
             owners = sorted({flag.split(".")[2] for flag in idle})
