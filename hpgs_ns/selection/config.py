@@ -161,11 +161,19 @@ class SelectionLoopConfig(InstantiateConfig):
             signature.update({"shortlist": str(self.shortlist), "shortlist-size": str(self.shortlist_size)})
             used.append(self.shortlist)
         for name in dict.fromkeys(used):
-            options = self.selector_config(name)
-            for f in fields(options):
-                if not f.name.startswith("_"):
-                    signature[f"{name}.{f.name.replace('_', '-')}"] = str(getattr(options, f.name))
+            signature.update(_option_texts(name, self.selector_config(name)))
         return signature
+
+
+def _option_texts(prefix: str, options) -> Dict[str, str]:
+    """{"PREFIX.option": value as text} for a selector's options; a preset's parts' options as "PREFIX.part.option"."""
+    out = {}
+    for f in fields(options):
+        if f.name.startswith("_"):
+            continue
+        value, key = getattr(options, f.name), f"{prefix}.{f.name.replace('_', '-')}"
+        out.update(_option_texts(key, value) if isinstance(value, SelectorConfig) else {key: str(value)})
+    return out
 
 
 # Numeric options' sensible values: name -> (test, what the value must be, the fix).

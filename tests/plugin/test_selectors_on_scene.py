@@ -194,3 +194,23 @@ def test_blend_scores_are_farthest_and_hpgs_scores_combined_through_ns_train_opt
     assert names == [trainer.pipeline.datamanager.image_names[cand[int(expected.argmax())]]]
     assert_unseen_side(names, az)  # coverage weighs double here
     assert type(trainer.pipeline.config.selection.blend) is BlendSelectorConfig  # an ns-train option group
+
+
+def test_presets_pick_the_unseen_side_and_rank_only_their_shortlist(one_sided):
+    from hpgs_ns.selectors.presets import CoverageFisherSelectorConfig, FarthestDoptSelectorConfig, FisherDoptSelectorConfig
+
+    trainer, az = one_sided
+    light = dict(probes=4, train_probe_factor=2, view_batch=8)
+    names, selection = pick(trainer, FisherDoptSelectorConfig(**light), "fisher-dopt")
+    assert_unseen_side(names, az)
+    # D-optimal scores are log-gains: positive, and below the trace's (log(1 + x) < x)
+    trace = pick(trainer, FisherSelectorConfig(**light), "fisher")[1].scores
+    assert all(0 < s for s in selection.scores.values()) and sum(selection.scores.values()) < sum(trace.values())
+    dm = trainer.pipeline.datamanager
+    pool = len(dm.candidates)
+    for preset in (FarthestDoptSelectorConfig(then=FisherSelectorConfig(criterion="dopt", **light)),
+                   CoverageFisherSelectorConfig(then=FisherSelectorConfig(**light))):
+        names, selection = pick(trainer, preset, preset.name)
+        assert_unseen_side(names, az)
+        kept = math.ceil(0.2 * pool)
+        assert selection.work["shortlist_kept"] == kept and len(selection.scores) == kept
