@@ -12,19 +12,17 @@ from dataclasses import dataclass
 from typing import List, Tuple
 
 from hpgs_lab.names import REFERENCES
+from hpgs_ns.selectors.registry import BUILTIN_SELECTORS, selector_names
 
 
 def row_order() -> List[str]:
     """Selectors in the registry's order, then the reference rows: how tables and plots list them."""
-    from hpgs_ns.selectors.registry import selector_names
-
     return selector_names() + list(REFERENCES)
 
 
-# The built-in selectors (`registry.BUILTIN_SELECTORS`, in its order), written out: `hpgs bench --help` shows them as
-# the default of --selectors, and importing the registry loads torch and nerfstudio. tests/test_cli_imports.py
-# checks the two lists agree.
-DEFAULT_SELECTORS: Tuple[str, ...] = ("random", "farthest", "fisher", "hpgs", "condorcet", "blend")
+# The built-in selectors, in the registry's order: `hpgs bench --help` shows them as the default of --selectors (the
+# registry imports no torch, so reading its names costs nothing).
+DEFAULT_SELECTORS: Tuple[str, ...] = tuple(BUILTIN_SELECTORS)
 
 
 @dataclass(frozen=True)

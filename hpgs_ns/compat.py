@@ -67,3 +67,14 @@ def upgrade_pipeline_config(config: Any, pipeline_config: type) -> bool:
         config.pipeline = pipeline_config(datamanager=pipeline.datamanager, model=pipeline.model, selection=selection)
         return True
     return False
+
+
+# Resume-signature keys added after checkpoints were written, with the value those checkpoints trained with: a
+# checkpoint without the key resumes under it as before.
+ADDED_SIGNATURE_KEYS: Dict[str, str] = {"fisher.criterion": "trace"}
+
+
+def fill_added_signature_keys(saved: Dict[str, str], now: Dict[str, str]) -> Dict[str, str]:
+    """`saved` with every key added since it was written (and present `now`) set to the value it trained with."""
+    added = {k: v for k, v in ADDED_SIGNATURE_KEYS.items() if k in now and k not in saved}
+    return {**saved, **added} if added else saved

@@ -93,6 +93,10 @@ class SelectorConfig(InstantiateConfig):
     numbers (the benchmark's code hash)."""
     logged_in_candidate_log: ClassVar[bool] = True
     """Whether `--pipeline.selection.log-candidate-scores` records this selector's score of every candidate."""
+    fitted_weights: ClassVar[Dict[str, str]] = {}
+    """Options fitted offline on candidate logs, {selector whose z-scored score it weighs: the option of its weight},
+    keyed as `benchmarks/candidate_scores.py --selectors ...` writes them: `hpgs bench --blend-weights FILE` sets
+    them for each scene from that script's leave-one-scene-out JSON."""
 
     def setup(self, **kwargs) -> Selector:
         return super().setup(**kwargs)

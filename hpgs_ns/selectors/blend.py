@@ -11,7 +11,7 @@ the weights that best predict that error, leave one scene out (how well they do:
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import ClassVar, List, Tuple, Type
+from typing import ClassVar, Dict, List, Tuple, Type
 
 import torch
 
@@ -29,6 +29,8 @@ class BlendSelectorConfig(PreferenceSelectorConfig):
     code_files: ClassVar[Tuple[str, ...]] = PreferenceSelectorConfig.code_files + ("selectors/farthest.py", "selectors/hpgs.py")
     # A fitted mix of farthest and hpgs, which the log records: logging it too would feed its own fit.
     logged_in_candidate_log: ClassVar[bool] = False
+    # What `candidate_scores.py --selectors farthest hpgs` fits (`hpgs bench --blend-weights`): each one's weight.
+    fitted_weights: ClassVar[Dict[str, str]] = {"farthest": "farthest_weight", "hpgs": "hpgs_weight"}
     # Fitted on every logged scene (fox, juice box, gold cape, campus; seed 1 of the FisherRF protocol):
     # `python benchmarks/candidate_scores.py benchmarks/results/suite --selectors farthest hpgs`.
     farthest_weight: float = 0.437

@@ -1,4 +1,5 @@
-"""Named combinations of the built-in selectors, registered like selectors so a run (and `hpgs bench`) names each.
+"""Named combinations of the built-in selectors, each one line of the registry (`hpgs_ns.selectors.registry`), so a
+run (and `hpgs bench`) names each like a selector.
 
 - `fisher-dopt`: `fisher` with the D-optimal criterion (POp-GS, CVPR'25): `sum log(1 + h_c / (H_train + lambda))`.
 - `farthest-dopt`: `farthest`'s best 20% of the candidates, reranked by D-optimal `fisher` (a geometric shortlist
@@ -25,7 +26,6 @@ from hpgs_ns.selectors.shortlist import ShortlistPresetConfig
 class FisherDoptSelectorConfig(FisherSelectorConfig):
     """`fisher` with the D-optimal criterion (POp-GS): the log-det gain of each candidate's diagonal information."""
 
-    name: ClassVar[str] = "fisher-dopt"
     criterion: str = "dopt"
     logged_in_candidate_log: ClassVar[bool] = False  # `fisher`'s own row holds the same renders' trace scores
 
@@ -39,7 +39,6 @@ class FarthestDoptSelectorConfig(ShortlistPresetConfig):
     """`farthest`'s best `shortlist-size` share of the candidates (its greedy far-apart order), reranked by
     D-optimal `fisher`."""
 
-    name: ClassVar[str] = "farthest-dopt"
     code_files: ClassVar[Tuple[str, ...]] = ("selectors/farthest.py", "selectors/fisher.py", "selectors/shortlist.py",
                                              "render/pair_render.py")
     first: FarthestSelectorConfig = field(default_factory=FarthestSelectorConfig)
@@ -52,7 +51,6 @@ class FarthestDoptSelectorConfig(ShortlistPresetConfig):
 class CoverageFisherSelectorConfig(ShortlistPresetConfig):
     """`coverage`'s least-covered `shortlist-size` share of the candidates, reranked by `fisher` (trace)."""
 
-    name: ClassVar[str] = "coverage-fisher"
     code_files: ClassVar[Tuple[str, ...]] = ("selectors/coverage.py", "render/coverage.py", "selectors/fisher.py",
                                              "selectors/shortlist.py", "render/pair_render.py")
     first: CoverageSelectorConfig = field(default_factory=CoverageSelectorConfig)
@@ -60,5 +58,3 @@ class CoverageFisherSelectorConfig(ShortlistPresetConfig):
     then: FisherSelectorConfig = field(default_factory=FisherSelectorConfig)
     """The ranking selector's options."""
 
-
-PRESETS = (FisherDoptSelectorConfig, FarthestDoptSelectorConfig, CoverageFisherSelectorConfig)

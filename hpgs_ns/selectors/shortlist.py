@@ -78,7 +78,10 @@ class ShortlistPresetConfig(SelectorConfig):
 
     @classmethod
     def preset_name(cls) -> str:
-        return getattr(cls, "name", "preset")
+        """The name the registry gives this preset (its flags' group)."""
+        from hpgs_ns.selectors.registry import name_of
+
+        return name_of(cls) or "preset"
 
     def setup(self, **kwargs) -> Selector:
         first, then = self.first, self.then  # type: ignore[attr-defined]

@@ -65,7 +65,7 @@ BAD_OPTIONS = [
     (["mipnerf360", "--max-unreadable-fraction", "1.5"], "mipnerf360 --max-unreadable-fraction 1.5: must be within [0, 1]",
      "pass e.g. 0.1"),
     (["--pipeline.selection.selector", "nosuch"], "--pipeline.selection.selector nosuch: unknown selector",
-     "choose one of random, farthest, fisher, hpgs"),
+     "choose one of random, farthest, fisher, coverage, hpgs"),
     (["nerfstudio-data", "--train-split-fraction", "1"], "nerfstudio-data --train-split-fraction 1.0: must be within (0, 1)",
      "pass e.g. 0.9"),
 ]

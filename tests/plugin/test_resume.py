@@ -169,3 +169,23 @@ def test_a_resume_that_extends_a_run_follows_the_longer_schedule_and_counts_its_
     # the re-sized schedule is saved: a resume of the extended run keeps it
     state = torch.load(sorted((Path(longer.base_dir) / "nerfstudio_models").glob("*.ckpt"))[-1], map_location="cpu")
     assert state["schedulers"]["means"]["lr_lambdas"][0]["max_steps"] == 40
+
+
+def test_a_fisher_checkpoint_from_before_the_criterion_resumes_under_trace_only():
+    from types import SimpleNamespace
+
+    from hpgs_ns.selection.config import SelectionConfig
+    from hpgs_ns.trainer import CheckpointError, check_resume_matches
+
+    now = SelectionConfig(selector="fisher").resume_signature(0)
+    written_before = {k: v for k, v in now.items() if k != "fisher.criterion"}
+
+    def pipeline(signature):
+        return SimpleNamespace(datamanager=SimpleNamespace(loaded_selection_signature=written_before,
+                                                           selection_signature=signature))
+
+    check_resume_matches(pipeline(now))  # trace, as such checkpoints trained
+    with pytest.raises(CheckpointError) as err:
+        check_resume_matches(pipeline(SelectionConfig(selector="fisher", fisher=type(SelectionConfig().fisher)(
+            criterion="dopt")).resume_signature(0)))
+    assert "fisher.criterion: checkpoint trace, now dopt" in str(err.value)

@@ -15,7 +15,8 @@ from pathlib import Path
 import pytest
 from conftest import REPO, run_training, short_config
 
-from hpgs_ns.selectors import BUILTIN_SELECTORS, SelectionError, selector_config, selector_names
+from hpgs_ns.selectors import SelectionError
+from hpgs_ns.selectors.registry import BUILTIN_SELECTORS, selector_class, selector_config, selector_names
 
 TOY = textwrap.dedent('''
     """A third-party selector: always the candidate with the highest index."""
@@ -87,8 +88,11 @@ def test_a_plugin_selector_reaches_the_bench_rows_the_candidate_log_and_provenan
     from hpgs_ns.selection.candidate_log import logged_selectors
 
     assert row_order().index("last") == len(BUILTIN_SELECTORS)  # after the built-in ones, before the references
-    # every selector whose scores say something, the plugin's too; random's scores are all equal, blend is a mix
-    assert logged_selectors() == ["farthest", "fisher", "hpgs", "condorcet", "last"]
+    # every selector whose config says its scores say something, the plugin's too (by SelectorConfig's default);
+    # random's scores are all equal, blend is a mix
+    logged = logged_selectors()
+    assert logged == [name for name in selector_names() if selector_class(name).logged_in_candidate_log]
+    assert logged[-1] == "last" and not {"random", "blend"} & set(logged)
     before = code_hash("last")
     assert before != code_hash(None)
     (toy_plugin / "toy_selector.py").write_text(TOY + "\nCHANGED = 1  # a change to the plugin's module\n")
@@ -164,3 +168,89 @@ def test_options_of_a_selector_the_run_does_not_use_say_at_start_that_they_do_no
     out = " ".join(capsys.readouterr().out.split())
     assert ("--pipeline.selection.hpgs.model does nothing in this run: the selector is farthest "
             "(add --pipeline.selection.selector hpgs)") in out
+
+
+NEW_BUILTIN = textwrap.dedent('''
+    """A new built-in selector as a test writes one: its module (this file) and one registry line, nothing else."""
+    from dataclasses import dataclass, field
+    from typing import Type
+
+    from hpgs_ns.selectors.base import Selection, SelectorConfig
+
+
+    class LowestIndexSelector:
+        def __init__(self, config):
+            self.config = config
+
+        def select(self, context):
+            return Selection(indices=sorted(context.candidates)[:context.num_to_pick])
+
+
+    @dataclass
+    class LowestIndexSelectorConfig(SelectorConfig):
+        """Always the candidates with the lowest index."""
+
+        _target: Type = field(default_factory=lambda: LowestIndexSelector)
+        skip: int = 0
+        """An option of the new selector."""
+''')
+
+# In a fresh interpreter: the new selector's one registry line, then everything that lists selectors is built as in
+# any process (the selection config's groups and ns-train's choices, the candidate log, `hpgs bench`'s defaults).
+NEW_BUILTIN_PROBE = textwrap.dedent("""
+    import contextlib, io, json
+    from hpgs_ns.selectors import registry
+    registry.BUILTIN_SELECTORS["lowest-index"] = "lowest_index:LowestIndexSelectorConfig"  # the one registry line
+
+    import tyro
+    from hpgs_lab.protocols import DEFAULT_SELECTORS
+    from hpgs_lab.runs import Bench
+    from hpgs_ns.method_config import hpgs_trainer_config
+    from hpgs_ns.selection.candidate_log import logged_selectors
+
+    def help_of(cls, **kwargs):
+        out = io.StringIO()
+        with contextlib.redirect_stdout(out), contextlib.suppress(SystemExit):
+            tyro.cli(cls, args=["--help"], **kwargs)
+        return out.getvalue()
+
+    default = hpgs_trainer_config(100)
+    args = ["--pipeline.selection.selector", "lowest-index", "--pipeline.selection.lowest-index.skip", "2"]
+    options = tyro.cli(type(default), default=default, args=args).pipeline.selection.selector_config()
+    print(json.dumps({
+        "names": registry.selector_names(), "options": [type(options).__name__, options.skip],
+        "ns_train_help": help_of(type(default), default=default), "logged": logged_selectors(),
+        "choices": registry.SelectorName.__metadata__[0].metavar,
+        "bench_defaults": list(DEFAULT_SELECTORS), "bench_selectors": Bench().selectors,
+        "bench_help": help_of(Bench, prog="hpgs bench"),
+    }))
+""")
+
+
+def test_a_new_builtin_selector_is_its_module_and_one_registry_line(tmp_path):
+    (tmp_path / "lowest_index.py").write_text(NEW_BUILTIN)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), str(REPO), os.environ.get("PYTHONPATH", "")]),
+           "COLUMNS": "400"}
+    out = subprocess.run([sys.executable, "-c", NEW_BUILTIN_PROBE], env=env, cwd=tmp_path, capture_output=True,
+                         text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-3000:]
+    found = json.loads(out.stdout.strip().splitlines()[-1])
+    assert found["names"][:len(BUILTIN_SELECTORS) + 1] == [*BUILTIN_SELECTORS, "lowest-index"]
+    assert found["options"] == ["LowestIndexSelectorConfig", 2]  # chosen, and its option group parsed
+    assert "--pipeline.selection.lowest-index.skip" in found["ns_train_help"]
+    assert found["choices"] == "{" + ",".join([*BUILTIN_SELECTORS, "lowest-index"]) + "}"  # as the help shows them
+    assert "lowest-index" in found["logged"]  # SelectorConfig's default facts
+    assert found["bench_defaults"] == found["bench_selectors"] == [*BUILTIN_SELECTORS, "lowest-index"]
+    assert " ".join([*BUILTIN_SELECTORS, "lowest-index"]) in " ".join(found["bench_help"].split())
+
+
+def test_a_preset_s_flags_are_named_by_its_registry_line():
+    from hpgs_ns.errors import OptionError
+    from hpgs_ns.selectors.shortlist import ShortlistPresetConfig
+
+    presets = [name for name in BUILTIN_SELECTORS if issubclass(selector_class(name), ShortlistPresetConfig)]
+    assert presets
+    for name in presets:
+        assert selector_class(name).preset_name() == name
+        with pytest.raises(OptionError, match=re.escape(f"--pipeline.selection.{name}.shortlist-size 2")):
+            selector_class(name)(shortlist_size=2.0)
