@@ -48,7 +48,7 @@ CODE_FILES = (
 NOT_CODE_FILES = (
     "__init__.py", "atomic_write.py", "cli.py", "compat.py", "demo.py", "errors.py", "ns_train.py", "run_config.py",
     "viewer.py",
-    "preference/", "render/__init__.py", "scenes/__init__.py", "selection/__init__.py",
+    "preference/", "render/__init__.py", "render/coverage.py", "scenes/__init__.py", "selection/__init__.py",
     "selection/candidate_log.py", "selection/log.py", "selectors/__init__.py", "selectors/", "suggest/",
 )
 

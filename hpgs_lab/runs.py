@@ -78,8 +78,9 @@ class Bench:
     procedural scenes (generated into OUT/_scenes on first use)."""
     suite: Optional[str] = None
     """A suite of scenes with their dataparsers and options: a shipped one (`real6`: the six real captures in
-    shared/data at half size, plus a synthetic smoke scene; `real12`: those six and the six of `tune6`) or a .toml
-    file (see `hpgs_lab/suites.py`)."""
+    shared/data at half size, plus a synthetic smoke scene; `tune6`: the six tuning captures; `real12`: real6's six
+    and tune6's; `judge13`: real6's six and seven captures never tuned on, where tuned settings are judged; `all19`:
+    judge13 and tune6) or a .toml file (see `hpgs_lab/suites.py`)."""
     suite_scenes: List[str] = field(default_factory=list)
     """Only these scenes of the suite (default: all)."""
     data_root: Path = Path("../shared/data")
@@ -233,6 +234,7 @@ class Bench:
             CONSOLE.print(f"[yellow]hpgs bench: the default preference model was trained on renders of {', '.join(seen)}; "
                           "for leave-one-scene-out numbers pass --preference-models benchmarks/results/pref_models")
         todo = self.within_max_runs(todo, self.max_runs, "runs")
+        check_commands(self, todo)  # a run ns-train would refuse fails here, before any run starts
         failed: Optional[UserError] = None
         try:
             run_sweep(self, todo, self.cluster)
@@ -294,6 +296,7 @@ class Bench:
     def run_final_sets(self, scenes: Optional[Sequence[Scene]] = None, budget: Optional[int] = None) -> None:
         """Run the final-set jobs left to do (`final_set_todo`), at most `budget` of them (None: all)."""
         todo = self.within_max_runs(self.final_set_todo(scenes), budget, "final-set runs")
+        check_commands(self, todo, what="final-set run")
         run_sweep(self, todo, self.cluster, what="final-set runs")
 
 
@@ -408,6 +411,124 @@ def train_args(bench: Bench, job: Job, run_root: Path) -> List[str]:
     )
 
 
+# Options whose values differ from run to run of one scene and protocol: masked, runs that differ only in them are
+# parsed once (their values are the sweep's own: seeds, folders, counts and names it writes itself).
+PER_RUN_OPTIONS = frozenset({
+    "--timestamp", "--machine.seed", "--final-eval-json", "--pipeline.datamanager.seed",
+    "--pipeline.datamanager.num-initial-views", "--pipeline.datamanager.initial-view-names",
+    f"--{SELECTION_PREFIX}selector", f"--{SELECTION_PREFIX}max-rounds",
+})
+
+
+def command_shape(args: Sequence[str]) -> Tuple[str, ...]:
+    """`args` with the values of `PER_RUN_OPTIONS` replaced by one `*`."""
+    shape: List[str] = []
+    masking = False
+    for word in args:
+        if word.startswith("--"):
+            masking = word in PER_RUN_OPTIONS
+        elif masking:
+            if shape[-1] != "*":
+                shape.append("*")
+            continue
+        shape.append(word)
+    return tuple(shape)
+
+
+def check_commands(bench: Bench, jobs: Sequence[Job], what: str = "run") -> None:
+    """Refuse, in one line, a sweep any of whose `ns-train hpgs` commands ns-train would refuse while it parses
+    them (an option the dataparser lacks, a value of the wrong type, one a config's check rejects), before any run
+    starts: each run would otherwise fail minutes in, after the runs before it. One in-process parse per distinct
+    command shape (`command_shape`); the selectors, masked there, are checked by name."""
+    from hpgs_ns.selectors.registry import selector_names
+
+    known = selector_names()
+    for name in dict.fromkeys(j.name for j in jobs if j.name != FINAL_SET and not is_reference(j.name)):
+        if name not in known:
+            raise UserError(f"hpgs bench: --selectors {name}: unknown selector; choose one of {', '.join(known)} (or "
+                            f"install the package that registers it); no {what} was launched")
+    shapes: Dict[Tuple[str, ...], Job] = {}
+    for job in jobs:
+        args = train_args(bench, job, bench.out / "_runs")
+        args = args[args.index("nerfstudio.scripts.train") + 2:]  # after `python -m nerfstudio.scripts.train hpgs`
+        if shapes.setdefault(command_shape(args), job) is not job:
+            continue
+        reason = ns_train_refusal(args)
+        if reason is not None:
+            raise UserError(f"hpgs bench: {job.label}: ns-train hpgs refuses its arguments: {reason}"
+                            f"{refusal_fix(bench, job, reason)}; no {what} was launched")
+
+
+def ns_train_refusal(args: Sequence[str]) -> Optional[str]:
+    """Why `ns-train hpgs ARGS` would stop while parsing ARGS (tyro's parse of the `hpgs` method's config, as
+    ns-train runs it, with the configs' own checks), in one line; None if it parses. Nothing is trained."""
+    import io
+
+    from hpgs_ns.method_config import hpgs
+
+    printed = io.StringIO()
+    cli = tyro.conf.SuppressFixed[tyro.conf.FlagConversionOff[type(hpgs.config)]]  # ns-train's markers
+    try:
+        with provenance.PARSE_LOCK, contextlib.redirect_stdout(printed), contextlib.redirect_stderr(printed), \
+                warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            tyro.cli(cli, default=hpgs.config, args=list(args), prog="ns-train hpgs")
+    except UserError as err:  # a config's own check: its line names the fix
+        return str(err)
+    except SystemExit:  # tyro drew its error box
+        return stop_reason(printed.getvalue().splitlines()) or "no reason given"
+    return None
+
+
+def refusal_fix(bench: Bench, job: Job, reason: str) -> str:
+    """Where the option a refusal names came from, and what to do: the scene's suite options or --extra-args."""
+    import re
+
+    flags = {word.split("=")[0] for word in re.findall(r"--[\w.-]+", reason)}
+    if flags & {f"--{k}" for k in job.scene.option_dict()}:
+        return (f"; it is an option of scene {job.scene.name!r} in the suite: fix or drop it (`ns-train hpgs "
+                f"{job.scene.dataparser} --help` lists {job.scene.dataparser}'s options)")
+    if flags & {w.split("=")[0] for w in shlex.split(bench.extra_args)}:
+        return "; it is in --extra-args: fix or drop it (`ns-train hpgs --help` lists the options)"
+    return ""
+
+
+BOX_BORDER = "│┃║|"
+BOX_RULE = set("─━═-╭╮╰╯┌┐└┘┏┓┗┛╔╗╚╝+ ")
+
+
+def stop_reason(lines: Sequence[str]) -> str:
+    """Why a run's `ns-train` stopped, in one line, from the end of its output: its last `error: ...` line; else,
+    where tyro drew its error box, the box's first paragraph without the border; else the last line."""
+    lines = [line.strip().strip(BOX_BORDER).strip() for line in lines]
+
+    def rule(line: str) -> bool:
+        return bool(line) and (line[0] in "╭╰┌└" or set(line) <= BOX_RULE)
+
+    said = [line for line in lines if line.startswith("error: ")]
+    if said:
+        return said[-1]
+    if any("For full helptext" in line for line in lines):
+        tops = [i for i, line in enumerate(lines) if line.startswith(("╭", "┌"))]  # a box in UTF-8 (a run's log)
+        start = tops[-1] if tops else next((i for i, line in enumerate(lines) if rule(line)), -1)  # or in ASCII
+        paragraph = []
+        for line in lines[start + 1:]:
+            if not line or rule(line):
+                if paragraph:
+                    break
+                continue
+            paragraph.append(line)
+        text = " ".join(paragraph)
+        head, colon, named = text.partition(": ")
+        if head == "Unrecognized options" and colon:
+            # tyro lists an unknown option's value words too (`--nosuch-option, 1`): name the options
+            options = [w for w in named.split(", ") if w.startswith("-")]
+            text = f"{head}: {', '.join(options or named.split(', '))}"
+        if text:
+            return text
+    return next((line for line in reversed(lines) if line and not rule(line)), "no output")
+
+
 def run_settings(bench: Bench, job: Job) -> dict:
     """What changes a run's numbers without changing its result path (checked when a sweep resumes): the
     schedule, the dataparser and its options, the code that trains and selects, the selector's options and its
@@ -437,7 +558,7 @@ def scene_selector_options(bench: Bench, job: Job) -> Dict[str, Any]:
     model = scene_preference_model(bench, job)
     if model is not None:
         options[f"{job.name}.model"] = model
-    options.update({f"blend.{k}": v for k, v in scene_blend_weights(bench, job).items()})
+    options.update({f"{job.name}.{k}": v for k, v in scene_blend_weights(bench, job).items()})
     return options
 
 
@@ -508,9 +629,25 @@ def keep_worst_views(metrics: dict, run_dir: Path, result: Path) -> List[dict]:
     return kept
 
 
+def fitted_weights(name: str) -> Dict[str, str]:
+    """The options of selector `name` fitted on candidate logs ({logged selector: option}; its config class says,
+    `SelectorConfig.fitted_weights`: blend's farthest and hpgs weights); empty for any other row."""
+    from hpgs_ns.selectors.base import SelectionError
+    from hpgs_ns.selectors.registry import selector_class
+
+    if is_reference(name):
+        return {}
+    try:
+        return dict(getattr(selector_class(name), "fitted_weights", {}))
+    except SelectionError:  # not a selector: its run fails with that line, reported with the sweep's failures
+        return {}
+
+
 def scene_blend_weights(bench: Bench, job: Job) -> Dict[str, float]:
-    """`blend`'s weights for this scene from --blend-weights, as option names (empty: the shipped weights)."""
-    if bench.blend_weights is None or job.name != "blend":
+    """The fitted weights of this scene's selector from --blend-weights (`fitted_weights`: blend's), as option names
+    (empty: the shipped weights, or a selector with none)."""
+    fitted = fitted_weights(job.name) if bench.blend_weights is not None else {}
+    if not fitted:
         return {}
     try:
         table = json.loads(Path(bench.blend_weights).read_text())["combination_loso"]["weights"]
@@ -520,10 +657,10 @@ def scene_blend_weights(bench: Bench, job: Job) -> Dict[str, float]:
     weights = table.get(job.scene.name)
     if weights is None:
         return {}
-    if set(weights) != {"farthest", "hpgs"}:
+    if set(weights) != set(fitted):
         raise UserError(f"hpgs bench: --blend-weights {bench.blend_weights} combines {', '.join(sorted(weights))}; "
-                         "blend takes farthest and hpgs (candidate_scores.py --selectors farthest hpgs)")
-    return {"farthest-weight": float(weights["farthest"]), "hpgs-weight": float(weights["hpgs"])}
+                        f"{job.name} takes {' and '.join(fitted)} (candidate_scores.py --selectors {' '.join(fitted)})")
+    return {option.replace("_", "-"): float(weights[key]) for key, option in fitted.items()}
 
 
 def gain_model_hash(bench: Bench) -> str:
@@ -558,8 +695,8 @@ def run_one(bench: Bench, job: Job, env: Optional[Dict[str, str]] = None, sweep:
         status, usage, under_mps = wait_watching_mps(proc.pid, env if env is not None else dict(os.environ))
     wall = time.perf_counter() - start
     if os.waitstatus_to_exitcode(status) != 0:
-        tail = log_path.read_text().strip().splitlines()[-15:]
-        last = tail[-1] if tail else "no output"
+        lines = log_path.read_text(errors="replace").strip().splitlines()
+        tail, last = lines[-15:], stop_reason(lines[-60:])
         raise TrainingFailed(f"hpgs bench: training {job.label} failed ({last}); its log: {log_path}", "\n".join(tail))
     log = run_dir / "candidate_scores.jsonl"
     if log.is_file():

@@ -143,11 +143,13 @@ def load_suite(suite: str, data_root: Optional[Path] = None, only: Sequence[str]
             raise SuiteError(f"{path}: scene {entry['name']!r}: {folder} does not exist; pass --data-root DIR (the folder holding {raw})")
         parser = entry.get("dataparser") or ("mipnerf360" if synthetic else scene_dataparser(folder))
         if parser not in DATAPARSERS:
-            raise SuiteError(f"{path}: scene {entry['name']!r}: unknown dataparser {parser!r}")
+            raise SuiteError(f"{path}: scene {entry['name']!r}: unknown dataparser {parser!r}; choose one of "
+                             f"{', '.join(DATAPARSERS)} (or leave dataparser out: it is found from the folder)")
         options = tuple(sorted((str(k2), str(v)) for k2, v in entry.get("options", {}).items()))
         scenes.append(Scene(str(entry["name"]), folder, parser, options, bool(entry.get("smoke", False))))
     if not scenes:
-        raise SuiteError(f"{path}: no [[scene]] entries")
+        raise SuiteError(f"{path}: no [[scene]] entries; add a [[scene]] table with a name and a path for each scene "
+                         f"(e.g. {SUITES / 'real6.toml'})")
     names = [s.name for s in scenes]
     if len(set(names)) != len(names):
         raise SuiteError(f"{path}: two scenes are called {next(n for n in names if names.count(n) > 1)!r}; names must differ")

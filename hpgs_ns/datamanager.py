@@ -198,6 +198,12 @@ class ActiveDatamanager(FullImageDatamanager):
             require_pycolmap(f"--pipeline.datamanager.seed-points {'auto on a capture without a point cloud' if auto else 'active'}"
                              " (it triangulates the active views)",
                              "or --pipeline.datamanager.seed-points colmap" + (" for splatfacto's random start" if auto else ""))
+        self._colmap_xyz: Optional[torch.Tensor] = None
+        """The capture's COLMAP points, all of them (before `colmap-initial` filters the seed points), in the
+        dataparser's frame: what `active_views` cuts to the active views' tracks."""
+        if self.seed_points_mode in ("colmap", "colmap-initial") and has_points and hasattr(self.config.dataparser, "colmap_path"):
+            self._colmap_xyz = points.clone()
+        self._colmap_observers: Optional[torch.Tensor] = None
         if self.seed_points_mode == "colmap-initial":
             self._keep_points_seen_by_initial_views()
         elif self.seed_points_mode == "random":
@@ -396,6 +402,61 @@ class ActiveDatamanager(FullImageDatamanager):
         for key in [k for k, v in meta.items() if k.startswith("points3D_") and torch.is_tensor(v) and v.shape[:1] == keep.shape]:
             meta[key] = meta[key][keep]
         CONSOLE.print(f"strict init: kept {int(keep.sum())} of {keep.numel()} seed points seen by >= {min_views} initial views")
+
+    # ---- what the trainer strategies see (`hpgs_ns.strategies`) -------------------------------------------------
+
+    def active_views(self):
+        """The active views and the sparse points they see (`strategies.base.ActiveViews`): the COLMAP model's points
+        (seed-points colmap or colmap-initial) or the `active` start's last triangulation (of active views only),
+        each with its track cut to the active views; a point no active view sees is left out, so one only withheld
+        or test views see never reaches a strategy."""
+        from hpgs_ns.strategies.base import ActiveViews, TrackedPoints
+
+        active = list(self.active)
+        found = self._tracked_points()
+        if isinstance(found, str):
+            return ActiveViews(active, None, found)
+        xyz, observers, source = found
+        is_active = torch.zeros(observers.shape[1], dtype=torch.bool)
+        is_active[torch.tensor(active, dtype=torch.long)] = True
+        observers = observers & is_active
+        seen = observers.any(1)
+        return ActiveViews(active, TrackedPoints(xyz[seen], observers[seen], source))
+
+    def _tracked_points(self):
+        """(xyz [P, 3], observers [P, V] bool over the training split, source) of every sparse point with a track,
+        or one clause saying why the run has none."""
+        views = len(self.image_names)
+        if self.seed_points_mode == "active":
+            last = getattr(self.triangulation, "last_points", None)
+            if last is None:
+                return "seed-points active has triangulated no points yet (a resumed run does at its next round)"
+            xyz, tracks = last
+            observers = torch.zeros((len(tracks), views), dtype=torch.bool)
+            for row, track in enumerate(tracks):
+                observers[row, torch.tensor(track, dtype=torch.long)] = True
+            return torch.from_numpy(xyz).float(), observers, "the active views' triangulation"
+        if self._colmap_xyz is None:
+            if self.seed_points_mode == "random":
+                return "seed-points random drops the capture's points (COLMAP tracks or seed-points active supply them)"
+            return ("the capture has no COLMAP model with point tracks (--pipeline.datamanager.seed-points active "
+                    "triangulates the active views)")
+        if self._colmap_observers is None:
+            from hpgs_ns.scenes.colmap_model import read_images, read_points3D
+
+            parser = self.config.dataparser
+            model_dir = Path(parser.data) / parser.colmap_path
+            images, points = read_images(model_dir), read_points3D(model_dir)
+            if images is None or points is None or len(points) != self._colmap_xyz.shape[0]:
+                return f"{model_dir} has no point tracks that line up with the capture's points"
+            colmap_names = [Path(*Path(n).parts[1:]).as_posix() for n in self.image_names]
+            view_of = {im_id: colmap_names.index(im.name) for im_id, im in images.items() if im.name in colmap_names}
+            observers = torch.zeros((len(points), views), dtype=torch.bool)
+            for row, point in enumerate(points.values()):
+                track = [view_of[i] for i in point.image_ids.tolist() if i in view_of]
+                observers[row, torch.tensor(track, dtype=torch.long)] = True
+            self._colmap_observers = observers
+        return self._colmap_xyz, self._colmap_observers, "the COLMAP tracks"
 
     def sample_train_cameras(self) -> List[int]:
         """A shuffled pass over the active views (nerfstudio calls this whenever a pass is used up; an add starts a

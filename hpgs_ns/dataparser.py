@@ -13,6 +13,8 @@ mipnerf360/kitchen` must work as typed:
 - a missing `images_N` folder (for the automatic factor or an explicit `--downscale-factor N`) is made without an
   interactive prompt (PIL, written to a temp folder then renamed), and images whose size does not match their
   cameras' are a one-line error naming the rounding mode that fits;
+- a scene without `images/` but with one `images_N/` (many downloaded scenes) is read from `images_N/` at factor N,
+  said in one line; with several, the one the automatic factor's rule picks;
 - a bad path or a missing model is a one-line error naming what is missing and how to fix it;
 - unreadable image files (truncated, empty) are dropped with one warning, after the train/test split is made,
   so a dropped frame never shifts which views are test views; too many is an error.
@@ -114,6 +116,7 @@ class MipNerf360DataParser(ColmapDataParser):
 
     def _generate_dataparser_outputs(self, split: str = "train", **kwargs):
         self._check_scene_folder()
+        self._use_the_only_downscaled_folder()
         try:
             outputs = super()._generate_dataparser_outputs(split, **kwargs)
         except (KeyError, IndexError, TypeError, NotImplementedError, AssertionError) as err:
@@ -144,6 +147,17 @@ class MipNerf360DataParser(ColmapDataParser):
                 width, height = image.size
             fits = [mode for mode, fn in ROUNDING.items() if (fn(width / factor), fn(height / factor)) == size]
         model = f"the COLMAP model ({Path(self.config.data) / self.config.colmap_path})"
+        folder = Path(self.config.images_path)
+        named = _RESOLUTION_FOLDER.match(folder.name)
+        if factor == 1 and named and _shrunk_by(size, camera) == int(named.group(1)):
+            # `--images-path images_N`: photos at 1/N of their cameras' size; only --downscale-factor scales cameras
+            n = int(named.group(1))
+            base = folder.parent / "images"
+            images = "" if base == Path("images") else f" --images-path {base}"
+            raise SceneDataError(f"{path} is {size[0]}x{size[1]} but its camera says {camera[0]}x{camera[1]}: {path.parent} "
+                                 f"holds the photos at 1/{n} of their cameras' size; pass mipnerf360 --downscale-factor {n}"
+                                 f"{images} instead of --images-path {folder} (it reads {path.parent} and scales the "
+                                 "cameras to it)")
         if fits:
             fix = f"pass mipnerf360 --downscale-rounding-mode {fits[0]}"
         elif _RESOLUTION_FOLDER.match(path.parent.name):
@@ -181,12 +195,53 @@ class MipNerf360DataParser(ColmapDataParser):
             self._model_checked = True
         full = data / self.config.images_path
         if not self._image_folder().is_dir() and not full.is_dir():  # images_N is written from images/
+            found = self._downscaled_folders()
+            if self.config.downscale_factor is None and found:
+                return  # read from one of them (_use_the_only_downscaled_folder)
+            if found:  # --downscale-factor N with no images_N and no images/ to write it from
+                factors = " or ".join(str(n) for n in found)
+                raise SceneDataError(f"{self._image_folder()} does not exist and there is no {full} to write it from; "
+                                     f"the photos are in {', '.join(str(f) for f in found.values())}: pass mipnerf360 "
+                                     f"--downscale-factor {factors}")
             raise SceneDataError(f"image folder {full} does not exist; set --images-path")
 
+    def _downscaled_folders(self) -> Dict[int, Path]:
+        """{N: the `images_N/` folder} beside the images folder (N > 1), smallest N first."""
+        full = Path(self.config.data) / self.config.images_path
+        if not full.parent.is_dir():
+            return {}
+        pattern = re.compile(rf"{re.escape(full.name)}_(\d+)")
+        found = {int(m.group(1)): p for p in full.parent.iterdir() if (m := pattern.fullmatch(p.name)) and p.is_dir()}
+        return {n: found[n] for n in sorted(found) if n > 1}
+
+    def _use_the_only_downscaled_folder(self) -> None:
+        """No `images/` but `images_N/` (downloaded scenes often ship only those): read `images_N/` at factor N
+        (the cameras scaled by 1/N, as `--downscale-factor N` does) rather than stop, and say so once. With several,
+        the smallest N whose photos fit nerfstudio's automatic rule (long side <= 1600 px), else the largest."""
+        full = Path(self.config.data) / self.config.images_path
+        if self.config.downscale_factor is not None or self._downscale_factor is not None or full.is_dir():
+            return
+        found = self._downscaled_folders()
+        if not found:
+            return
+        chosen = max(found)
+        for n, folder in found.items():
+            photo = next((p for p in sorted(folder.iterdir()) if p.is_file() and image_problem(p) is None), None)
+            if photo is not None:
+                with Image.open(photo) as image:
+                    if max(image.size) <= MAX_AUTO_RESOLUTION:
+                        chosen = n
+                        break
+        self._downscale_factor = chosen
+        others = f" (of {', '.join(p.name for p in found.values())})" if len(found) > 1 else ""
+        CONSOLE.print(f"[yellow]{full} does not exist: reading the photos in {found[chosen]}{others}, with the cameras "
+                      f"scaled to them (as mipnerf360 --downscale-factor {chosen})", soft_wrap=True)
+
     def _image_folder(self) -> Path:
-        """Where the photos are read from: `images/`, or `images_N/` when a downscale factor N is given."""
+        """Where the photos are read from: `images/`, or `images_N/` when a downscale factor N is given (or
+        found: `_use_the_only_downscaled_folder`)."""
         folder = Path(self.config.data) / self.config.images_path
-        factor = self.config.downscale_factor
+        factor = self.config.downscale_factor or self._downscale_factor
         return folder.parent / f"{folder.name}_{factor}" if factor and factor > 1 else folder
 
     def _get_all_images_and_cameras(self, recon_dir: Path):
@@ -198,7 +253,8 @@ class MipNerf360DataParser(ColmapDataParser):
             # images_N is (re)written from the full-resolution images below; one missing there (dropped as unreadable
             # when images_N was written) is read, and checked, at full resolution
             name = Path(frame["file_path"]).name
-            return folder / name if (folder / name).exists() else full / name
+            # without images/ (only images_N), a photo missing from images_N is named there
+            return folder / name if (folder / name).exists() or not full.is_dir() else full / name
 
         paths = [source(f) for f in out["frames"]]
         missing = [str(p) for p in paths if not p.exists()]
@@ -332,6 +388,9 @@ def downscaled_fix(path: Path, camera: Tuple[int, int], model: str) -> str:
     full-resolution photo it was written from is the right size; otherwise that photo is named."""
     factor = int(path.parent.name.rpartition("_")[2])
     source = path.parent.parent / "images" / path.name
+    if not source.is_file():  # nothing can write images_N again: it holds the only copy of this photo
+        return (f"there is no {source} to write it from, so {path.parent} holds the only copy: replace {path.name} with the "
+                f"{camera[0]}x{camera[1]} photo its camera was made from, or remove it from {model}")
     try:
         with Image.open(source) as image:
             width, height = image.size
@@ -469,7 +528,15 @@ def scene_dataparser(scene: Path) -> str:
     raise SceneDataError(f"{scene} is not a scene folder (no sparse/0 COLMAP model, no transforms.json); pass a scene folder")
 
 
-_RESOLUTION_FOLDER = re.compile(r"^images_\d+$")
+_RESOLUTION_FOLDER = re.compile(r"^images_(\d+)$")
+
+
+def _shrunk_by(size: Tuple[int, int], camera: Tuple[int, int]) -> Optional[int]:
+    """N > 1 when a photo of `size` is its `camera`'s size divided by N (any of nerfstudio's roundings)."""
+    for n in range(2, 65):
+        if any((fn(camera[0] / n), fn(camera[1] / n)) == tuple(size) for fn in ROUNDING.values()):
+            return n
+    return None
 
 
 def view_name(image_path: Path, data_root: Path) -> str:

@@ -1,9 +1,11 @@
 """The base class of every failure a user can fix, and how nerfstudio's CLIs print it: one line, no traceback.
 
 `ns-train hpgs`, `ns-eval` and `ns-viewer` are nerfstudio's entry points, so this package cannot wrap their
-`main`; `install_excepthook` (run when nerfstudio loads the `hpgs` method) prints an uncaught `UserError` as
-`error: <message>` and exits 1, and so is another package's exception that a registered explainer names the cause of
-(a damaged `--load-config`: `hpgs_ns.run_config`). Any other exception keeps its traceback. HPGS_TRACEBACK=1 shows it for all.
+`main`; `install_excepthook` (run when nerfstudio loads the `hpgs` method, in every `ns-*` process: it lists all
+methods) prints an uncaught `UserError` as `error: <message>` and exits 1, and so is another package's exception that
+a registered explainer names the cause of (a damaged `--load-config` or checkpoint of an hpgs run:
+`hpgs_ns.run_config`). Any other exception goes, untouched, to the hook installed before (nerfstudio's or Python's):
+it prints exactly as without the plugin. HPGS_TRACEBACK=1 shows the traceback for all.
 """
 
 from __future__ import annotations
@@ -39,8 +41,11 @@ def print_user_errors(kind, value, traceback, fallback) -> None:
         print(f"error: {value}", file=sys.stderr)
         return
     if issubclass(kind, Exception):
-        for explain in EXPLAINERS:  # e.g. ns-eval / ns-viewer failing in nerfstudio on a damaged --load-config
-            message = explain(value, traceback)
+        for explain in EXPLAINERS:  # e.g. ns-eval / ns-viewer failing in nerfstudio on an hpgs run's damaged config.yml
+            try:
+                message = explain(value, traceback)
+            except Exception:  # an explainer's own failure must not change what the exception prints
+                message = None
             if message:
                 print(f"error: {message}", file=sys.stderr)
                 return
@@ -49,7 +54,8 @@ def print_user_errors(kind, value, traceback, fallback) -> None:
 
 EXPLAINERS: List[Callable[[BaseException, Any], Optional[str]]] = []
 """Functions that name, in one line, the fixable cause of an exception raised in another package's code (None when
-they find none): `hpgs_ns.run_config.explain_load_config_failure`, registered by `install_excepthook`'s caller."""
+they find none): `hpgs_ns.run_config.explain_load_config_failure`, registered by `install_excepthook`'s caller. An
+explainer names only failures of the plugin's own runs; one that raises counts as None."""
 
 
 def install_excepthook(explain: Optional[Callable[[BaseException, Any], Optional[str]]] = None) -> None:

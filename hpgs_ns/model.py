@@ -24,8 +24,10 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import io
+import re
 from collections import defaultdict
-from dataclasses import dataclass, field
+from dataclasses import MISSING, dataclass, field, fields, make_dataclass
 from typing import Any, Callable, Dict, Iterator, List, Literal, Optional, Tuple, Type, Union
 
 import numpy as np
@@ -39,6 +41,8 @@ from hpgs_ns.render.footprints import FRONT_DEPTH, FRONT_SCREEN, PinholeViews, i
 from hpgs_ns.render.pair_render import Splat
 from hpgs_ns.render.rasterize import composite, rasterize_splat
 from hpgs_ns.render.viewmats import world_to_camera
+from hpgs_ns.strategies import registry as strategy_registry
+from hpgs_ns.strategies.base import ActiveViews, RenderedView, Strategy, StrategyConfig
 
 
 class RasterizerUnavailableError(UserError, RuntimeError):
@@ -89,8 +93,9 @@ def _offline_lpips_in_splatfacto():
 
 
 @dataclass
-class HpgsSplatfactoModelConfig(SplatfactoModelConfig):
-    """Splatfacto with a selectable rasterizer, runnable on CPU or GPU."""
+class HpgsSplatfactoModelOptions(SplatfactoModelConfig):
+    """Splatfacto with a selectable rasterizer, runnable on CPU or GPU (`HpgsSplatfactoModelConfig` adds one option
+    group per registered trainer strategy)."""
 
     _target: Type = field(default_factory=lambda: HpgsSplatfactoModel)
     rasterizer: Literal["auto", "gsplat", "cpu"] = "auto"
@@ -149,6 +154,30 @@ class HpgsSplatfactoModelConfig(SplatfactoModelConfig):
         check_option(flag + "near-cull-support", self.near_cull_support, self.near_cull_support >= 1,
                      "must be at least 1 (training views)", "pass 1 (one view is enough) or 2")
 
+    def __setstate__(self, state: dict) -> None:
+        # A config.yml saved before an option group existed (PyYAML restores attributes, not __init__): its defaults.
+        self.__dict__.update(state)
+        for f in fields(self):
+            if f.name not in self.__dict__ and f.default_factory is not MISSING:
+                setattr(self, f.name, f.default_factory())
+
+    def strategy_configs(self) -> Dict[str, StrategyConfig]:
+        """{registered strategy name: its options} (`hpgs_ns.strategies.registry`)."""
+        return {name: getattr(self, strategy_registry.option_group(name)) for name in strategy_registry.strategy_names()
+                if isinstance(getattr(self, strategy_registry.option_group(name), None), StrategyConfig)}
+
+
+# The model's options and one group per registered strategy, e.g. `--pipeline.model.depth-loss.weight 0.05`. Made
+# once, at import, from the registry (the one list of strategies): a new strategy needs no edit here. Its name and
+# module are a plain class's, so config.yml files name it as `HpgsSplatfactoModelConfig`.
+HpgsSplatfactoModelConfig = make_dataclass(
+    "HpgsSplatfactoModelConfig",
+    [(strategy_registry.option_group(name), cls, field(default_factory=cls))
+     for name, cls in strategy_registry.strategy_classes().items()],
+    bases=(HpgsSplatfactoModelOptions,),
+    namespace={"__module__": __name__, "__doc__": "Splatfacto with a selectable rasterizer, runnable on CPU or GPU."},
+)
+
 
 ACTIVE_START_NEAR_CULL = 0.15
 """near-cull-screen where it is left unset and the splat starts from the active views' points: the guard that met
@@ -196,6 +225,9 @@ class HpgsSplatfactoModel(SplatfactoModel):
         with _offline_lpips_in_splatfacto():
             super().populate_modules()
         self.seed_points = seed_points
+        self.trainer_strategies: List[Strategy] = [options.setup() for options in self.config.strategy_configs().values()
+                                                   if options.active()]
+        """The trainer strategies this run uses (`hpgs_ns.strategies`; those off, e.g. weight 0, are not built)."""
         if colours is not None:
             dc = self.gauss_params["features_dc"]
             if self.config.sh_degree > 0:
@@ -523,10 +555,40 @@ class HpgsSplatfactoModel(SplatfactoModel):
         multipliers = getattr(getattr(self, "schedulers", {}).get("means"), "lr_lambdas", ())
         return multipliers[0] if multipliers and hasattr(multipliers[0], "at_fraction") else None
 
+    # ---- trainer strategies (`hpgs_ns.strategies`): the model calls their hooks, knowing none by name -------------
+
+    last_view: Optional[RenderedView] = None
+    """The camera of the last training render (set only while strategies run)."""
+
+    def after_views_added(self, views: ActiveViews) -> None:
+        """Tell the strategies the active views now (at the start of training and after each round)."""
+        for strategy in getattr(self, "trainer_strategies", []):
+            strategy.after_views_added(self, views)
+
+    def get_loss_dict(self, outputs, batch, metrics_dict=None) -> Dict[str, torch.Tensor]:
+        loss_dict = super().get_loss_dict(outputs, batch, metrics_dict)
+        strategies = getattr(self, "trainer_strategies", []) if self.training else []
+        step = int(self.step + self.step_offset)
+        for strategy in strategies:
+            loss_dict.update(strategy.loss(self, outputs, batch, step))
+        for strategy in strategies:
+            strategy.pre_backward(self, step)
+        return loss_dict
+
     def step_post_backward(self, step: int) -> None:
+        for strategy in getattr(self, "trainer_strategies", []):
+            strategy.post_backward(self, step)
         if self.config.means_lr_by_age:
             self.scale_young_means_steps()
-        super().step_post_backward(step - self.step_offset)
+        if self.step_offset and getattr(self.strategy, "verbose", False):
+            # gsplat prints "Step N: ..." on the model's clock, which a restart sets back to 0: name both clocks
+            with contextlib.redirect_stdout(io.StringIO()) as said:
+                super().step_post_backward(step - self.step_offset)
+            for line in said.getvalue().splitlines():
+                print(re.sub(r"^Step (\d+):", lambda m: f"Step {step} (step {m.group(1)} since the restart at step "
+                                                         f"{self.step_offset}):", line))
+        else:
+            super().step_post_backward(step - self.step_offset)
         if self.near_cull_screen > 0 and self.is_near_cull_step():
             self.cull_near_large()
 
@@ -773,7 +835,13 @@ class HpgsSplatfactoModel(SplatfactoModel):
         self.last_size = (H, W)
         camera.rescale_output_resolution(scale_fac)  # type: ignore
 
-        render_mode = "RGB+ED" if (self.config.output_depth_during_training or not self.training) else "RGB"
+        strategies = self.trainer_strategies if self.training else []
+        depth_wanted = self.config.output_depth_during_training or any(s.render_depth for s in strategies)
+        render_mode = "RGB+ED" if (depth_wanted or not self.training) else "RGB"
+        if strategies:  # the camera as rendered, for strategies' loss terms
+            index = (camera.metadata or {}).get("cam_idx", -1)
+            self.last_view = RenderedView(int(index), world_to_camera(camera_to_world.detach())[0].to(self.device),
+                                          K[0].detach().to(self.device), W, H)
         render, alpha, self.info = self._rasterize_cameras(camera_to_world, K, W, H, render_mode, crop_ids)
         if self.training and self.tracks_ages():
             self.mark_seen(self.info["radii"])

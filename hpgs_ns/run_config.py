@@ -4,13 +4,18 @@ nerfstudio reads `--load-config` with `yaml.load` and asserts the result is a `T
 is a `yaml` parser error, and one cut between two fields loads as a config that lacks them (an `AttributeError`
 later: `'HpgsPipelineConfig' object has no attribute 'model'`). `read_run_config` checks what nerfstudio would
 trip on; `explain_load_config_failure` (called by the excepthook `hpgs_ns.errors` installs under nerfstudio's
-CLIs) re-reads `--load-config` after `ns-eval`/`ns-viewer` failed in nerfstudio's `eval_setup`, and names the
-file's problem instead of the traceback, when it finds one.
+CLIs) re-reads `--load-config` after `ns-eval`/`ns-viewer` failed in nerfstudio's `eval_setup`, or `ns-train
+--load-config` in its `main`, and names the file's problem instead of the traceback, when it finds one. It also
+names the checkpoint `eval_setup` could not load: a run folder whose nerfstudio_models holds none (an IndexError
+in nerfstudio) or whose newest is truncated (torch's RuntimeError). It speaks only for the plugin's own runs (a
+config.yml whose YAML tags name `hpgs_ns` classes: `names_the_plugin`); another method's run (splatfacto, ...)
+keeps nerfstudio's traceback, exactly as without the plugin.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import re
 import sys
 from pathlib import Path
 from typing import Optional, Sequence
@@ -83,17 +88,94 @@ def load_config_argument(argv: Sequence[str]) -> Optional[Path]:
     return None
 
 
-def explain_load_config_failure(value: BaseException, traceback, argv: Sequence[str] = ()) -> Optional[str]:
-    """The one-line message for an exception raised while nerfstudio's `eval_setup` read `--load-config`
-    (`ns-eval`, `ns-viewer`, ...), when re-reading that file finds what is wrong with it; None otherwise."""
-    names = set()
-    while traceback is not None:
-        names.add(traceback.tb_frame.f_code.co_name)
-        traceback = traceback.tb_next
-    if "eval_setup" not in names or isinstance(value, UserError):
-        return None
-    path = load_config_argument(list(argv or sys.argv[1:]))
+PLUGIN_TAG = re.compile(rb"!!python/[a-z/]+:hpgs_ns\.")
+"""A YAML tag naming one of the plugin's classes (`!!python/object:hpgs_ns.trainer.HpgsTrainerConfig`, the first line
+of every hpgs run's config.yml, so a file cut short keeps it)."""
+
+
+def names_the_plugin(path: Optional[Path]) -> bool:
+    """Whether `path` (a run's config.yml, or its run folder) is a config whose YAML names the plugin's classes: the
+    runs whose load failures the excepthook explains. False for a file that is missing or unreadable."""
     if path is None:
+        return False
+    path = Path(path)
+    try:
+        if path.is_dir():
+            path = path / "config.yml"
+        return PLUGIN_TAG.search(path.read_bytes()) is not None
+    except (OSError, ValueError):
+        return False
+
+
+def failing_run_config(frames: Sequence, argv: Sequence[str]) -> Optional[Path]:
+    """The config.yml nerfstudio was opening when it failed: `eval_setup`'s `config_path` (ns-eval, ns-viewer,
+    ns-render, ...), else the command line's `--load-config` (ns-train); None when neither names one."""
+    for frame in frames:
+        if _in(frame, "eval_setup", "nerfstudio/utils/eval_utils.py") and frame.f_locals.get("config_path") is not None:
+            return Path(frame.f_locals["config_path"])
+    return load_config_argument(argv)
+
+
+def _in(frame, function: str, module_file: str) -> bool:
+    """Whether `frame` runs `function` of the file ending in `module_file` (e.g. "nerfstudio/scripts/train.py")."""
+    return frame.f_code.co_name == function and Path(frame.f_code.co_filename).as_posix().endswith(module_file)
+
+
+def explain_checkpoint_failure(frames: Sequence) -> Optional[str]:
+    """The one-line message when nerfstudio's `eval_load_checkpoint` (`ns-eval`, `ns-viewer`) failed to pick or
+    read the checkpoint: none in the folder, a file there that is not one, or a checkpoint that does not load."""
+    at = next((k for k, f in enumerate(frames) if _in(f, "eval_load_checkpoint", "nerfstudio/utils/eval_utils.py")), None)
+    if at is None:
+        return None
+    local = frames[at].f_locals
+    folder = getattr(local.get("config"), "load_dir", None)
+    if folder is None:
+        return None
+    folder = Path(folder)
+    load_path = local.get("load_path")
+    if load_path is None:  # failed choosing the newest: nerfstudio reads the step from every file name there
+        others = sorted(p.name for p in folder.iterdir() if not re.fullmatch(r"step-\d+\.ckpt", p.name)) if folder.is_dir() else []
+        if others:
+            return (f"{folder} holds files that are not checkpoints ({', '.join(others[:3])}), and nerfstudio reads "
+                    "every file there as one: move them out of it")
+        return (f"{folder} holds no checkpoint (step-*.ckpt); train the run first (it saves one every --steps-per-save "
+                "steps and at its last), or copy the run's nerfstudio_models there")
+    callee = frames[at + 1].f_code.co_filename if at + 1 < len(frames) else ""
+    if not Path(callee).as_posix().endswith("torch/serialization.py"):
+        return None  # loaded, but the pipeline refused its state: not a damaged file
+    from hpgs_ns.trainer import CheckpointError, checkpoint_step, load_checkpoint_file
+
+    try:
+        load_checkpoint_file(Path(load_path))
+    except CheckpointError as err:
+        before = sorted((p for p in folder.glob("step-*.ckpt") if checkpoint_step(p) < checkpoint_step(Path(load_path))),
+                        key=checkpoint_step)
+        if before:
+            return f"{err}; move it out of {folder} to load the one before it ({before[-1].name})"
+        return f"{err}; it is the run's only checkpoint: restore it from a copy, or train the run again"
+    return None
+
+
+def explain_load_config_failure(value: BaseException, traceback, argv: Sequence[str] = ()) -> Optional[str]:
+    """The one-line message for an exception raised while nerfstudio's `eval_setup` (`ns-eval`, `ns-viewer`, ...)
+    or `ns-train`'s `main` read `--load-config`, when re-reading that file finds what is wrong with it, or
+    `eval_setup` could not load the run's checkpoint (`explain_checkpoint_failure`); None otherwise, and always
+    None when the run's config.yml does not name the plugin's classes (`names_the_plugin`)."""
+    frames = []
+    while traceback is not None:
+        frames.append(traceback.tb_frame)
+        traceback = traceback.tb_next
+    if isinstance(value, UserError):
+        return None
+    path = failing_run_config(frames, list(argv or sys.argv[1:]))
+    if not names_the_plugin(path):
+        return None  # not an hpgs run (or none at all): nerfstudio's own traceback, as without the plugin
+    checkpoint = explain_checkpoint_failure(frames)
+    if checkpoint is not None:
+        return checkpoint
+    reading = any(_in(f, "eval_setup", "nerfstudio/utils/eval_utils.py") or _in(f, "main", "nerfstudio/scripts/train.py")
+                  for f in frames)
+    if not reading:
         return None
     try:
         read_run_config(path)

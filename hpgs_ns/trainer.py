@@ -32,7 +32,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 
 from hpgs_ns import schedules
 from hpgs_ns.atomic_write import atomic_path, write_json_atomic
-from hpgs_ns.compat import upgrade_pipeline_config
+from hpgs_ns.compat import fill_added_signature_keys, upgrade_pipeline_config
 from hpgs_ns.errors import OptionError, UserError
 from hpgs_ns.pipeline import HpgsPipelineConfig
 
@@ -181,6 +181,7 @@ class HpgsTrainer(Trainer):
         model = self.pipeline.model
         if hasattr(model, "step_offset"):  # splatfacto's load_state_dict leaves its step at 30000
             model.step = self._start_step - int(model.step_offset)
+        follow_restart_clock(model, self.end_step)
         CONSOLE.print(f"Done loading Nerfstudio checkpoint from {path}")
         # nerfstudio's loop runs max_num_iterations steps after the checkpoint: make that the steps left.
         self.config.max_num_iterations = max(self.end_step - self._start_step, 0)
@@ -326,8 +327,9 @@ def resize_loaded_schedules(optimizers, sizes: Dict[str, List[int]]) -> Optional
     """After a resume: the schedules restored from the checkpoint (LambdaLR's state keeps its multiplier, sized to
     the run the checkpoint was saved in) are re-sized to `sizes` (this run's, from `--max-num-iterations`), so an
     extended run follows the schedule of an uninterrupted run of its length from the loaded step on; the current
-    learning rates move to it at once. A schedule squeezed by a restart (`after-add`) keeps its span in steps.
-    Returns (old, new) decay length of the first schedule changed, or None."""
+    learning rates move to it at once. A schedule squeezed by a restart (`after-add`) keeps its start and now ends at
+    the new last step, as the uninterrupted run's restart squeezed it. Returns (old, new) decay length of the first
+    schedule changed, or None."""
     changed = None
     for name, scheduler in optimizers.schedulers.items():
         multipliers = [m for m in getattr(scheduler, "lr_lambdas", ()) if isinstance(m, schedules.DecayMultiplier)]
@@ -339,12 +341,25 @@ def resize_loaded_schedules(optimizers, sizes: Dict[str, List[int]]) -> Optional
             if multiplier.max_steps != size and multiplier.max_steps > 0:
                 changed = changed or (multiplier.max_steps, size)
                 if multiplier.speed != 1.0:
-                    multiplier.speed *= size / multiplier.max_steps
+                    # squeezed into the steps a restart had left (`restart_schedules`): the steps after it grow by
+                    # what the run grew by, so it ends with the run, as the longer run's restart made it
+                    span = round(multiplier.max_steps / multiplier.speed) + size - multiplier.max_steps
+                    multiplier.speed = max(size / max(span, 1), 1.0)
                 multiplier.max_steps, moved = size, True
         if moved:
             for group, base, fn in zip(scheduler.optimizer.param_groups, scheduler.base_lrs, scheduler.lr_lambdas):
                 group["lr"] = base * fn(scheduler.last_epoch)
     return changed
+
+
+def follow_restart_clock(model, end_step: int) -> None:
+    """After a resume: a model whose restart squeezed its step-keyed schedule into the steps the run had left
+    (`clock_scale` < 1, from the restart's step `step_offset`) squeezes it into the steps this run has left, as the
+    restart of an uninterrupted run of `end_step` steps did (`SelectionRounds.reset_model`); a resume that extends
+    the run otherwise densifies on the old run's clock."""
+    scale, restart = float(getattr(model, "clock_scale", 1.0)), int(getattr(model, "step_offset", 0))
+    if scale != 1.0 and 0 < restart and hasattr(model, "set_clock_scale"):
+        model.set_clock_scale(max(int(end_step) - restart, 1) / max(int(end_step), 1))
 
 
 def rebind_optimizers(optimizers, param_groups: Dict[str, List[torch.nn.Parameter]]) -> None:
@@ -404,8 +419,11 @@ def check_resume_matches(pipeline) -> None:
             saved = {**saved, "seed-points": "active"}
         elif now["seed-points"] != "active":
             saved = {**saved, "seed-points": now["seed-points"]}
-    saved = seeded_restarts_key(saved, now)
+    saved = fill_added_signature_keys(seeded_restarts_key(saved, now), now)
     changed = [key for key in sorted(set(saved) | set(now)) if saved.get(key) != now.get(key)]
+    if "selector" in changed:  # another selector's options are not a change of their own
+        selectors = {saved.get("selector"), now.get("selector"), saved.get("shortlist"), now.get("shortlist")} - {None}
+        changed = [k for k in changed if k.partition(".")[0] not in selectors or (k in saved and k in now)]
     if changed:
         def shown(signature: Dict[str, str], key: str) -> str:
             return signature.get(key, "off" if key == "near-cull" else "(unset)")  # the guard's key exists only when on

@@ -8,11 +8,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Dict, List, Sequence, Tuple
 
+import tyro
 from rich.console import Console
 from rich.progress import track
+from typing_extensions import Annotated
 
 from hpgs_ns.errors import UserError
-from hpgs_ns.preference.pairs import Pair, PairsError, load_image, read_usable_pairs
+from hpgs_ns.preference.pairs import Pair, PairsError, load_image, read_usable_pairs, require_pairs
 from hpgs_ns.preference.recipe import PreferenceModelError
 
 if TYPE_CHECKING:  # torch is imported where used: `hpgs eval-pref --help` imports this module
@@ -98,8 +100,9 @@ class EvalPref:
 
     model: Path
     """Checkpoint written by `hpgs train-pref`."""
-    pairs: Tuple[Path, ...]
-    """Pairs CSV(s) (Image_1,Image_2,Human Preference[,Skipped]); unlabelled and skipped rows are ignored."""
+    pairs: Annotated[Tuple[Path, ...], tyro.conf.UseAppendAction]
+    """Pairs CSV (Image_1,Image_2,Human Preference[,Skipped]); repeat --pairs for several. Unlabelled and skipped
+    rows are ignored."""
     json: bool = False
     """Print exactly one JSON object on stdout (accuracy, pairs, images, model, pairs_csv)."""
     batch_size: int = 16
@@ -111,6 +114,7 @@ class EvalPref:
         from hpgs_ns.preference.model import PreferenceModel
 
         try:
+            require_pairs(self.pairs)  # as train-pref: one line, before the model loads
             model = PreferenceModel.load(self.model, self.device)
             pairs = read_usable_pairs(self.pairs)
             result = evaluate_pairs(model, pairs, self.batch_size, progress=not self.json)

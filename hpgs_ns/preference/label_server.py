@@ -56,6 +56,8 @@ MAX_BODY = 64 * 1024  # a label POST is ~30 bytes; anything near this is not the
 LISTEN_BACKLOG = 128  # connections the kernel queues while the workers are busy (socketserver's default: 5)
 WORKERS = 32  # handler threads; saves are serialised by the book's lock anyway
 SOCKET_TIMEOUT = 10.0  # seconds a client may stall mid-request before its worker is freed
+NOTHING_TO_UNDO = ("nothing to undo: u undoes this session's answers only; to label a pair saved earlier again, clear "
+                   "its Human Preference cell in pairs.csv")
 
 
 def stale_temp_files(csv_path: Path) -> List[Path]:
@@ -367,12 +369,15 @@ def make_handler(book: LabelBook):
                     if value not in ("1", "0", "skip"):
                         raise _Refused(400, f"value must be \"1\", \"0\" or \"skip\", got {_show(value)}")
                     book.answer(i, value)
+                    undone = True
                 else:
-                    book.undo()
+                    undone = book.undo() is not None
             except OSError as err:  # the save failed: the answer is not confirmed
                 raise _Refused(500, f"could not save {book.path}: {err}") from None
             with book.lock:
                 state = book.state()
+            if not undone:  # the page says so instead of seeming to ignore the key
+                state["note"] = NOTHING_TO_UNDO
             self._json(state)
 
     return Handler

@@ -112,6 +112,14 @@ def read_pairs(csv_path: Path) -> List[Pair]:
     return pairs
 
 
+def require_pairs(csv_paths: Sequence[Path]) -> None:
+    """PairsError when no `--pairs` was given (tyro lets a repeatable option be left out): `hpgs train-pref` and
+    `hpgs eval-pref` say it alike."""
+    if not csv_paths:
+        raise PairsError("--pairs is required: pass --pairs PAIRS.csv (written by `hpgs label DIR`); repeat it for "
+                         "several files")
+
+
 def read_usable_pairs(csv_paths: Iterable[Path], check_images: bool = True) -> List[Pair]:
     """Labelled, unskipped pairs of all CSVs; PairsError if an image they name is missing."""
     pairs = [p for path in csv_paths for p in read_pairs(path) if p.usable]

@@ -32,6 +32,7 @@ from hpgs_ns.preference.pairs import (
     images_of,
     load_image,
     read_usable_pairs,
+    require_pairs,
 )
 from hpgs_ns.preference.recipe import BackboneName, FeatureTransform
 
@@ -253,9 +254,7 @@ class TrainPref:
 
         check_recipe(self.backbone, self.feature_transform)  # before reading images: a wrong pairing fails at once
         finetune = self.trains_backbone
-        if not self.pairs:  # tyro lets a repeatable option be left out
-            raise PairsError("--pairs is required: pass --pairs PAIRS.csv (written by `hpgs label DIR`); repeat it for "
-                             "several files")
+        require_pairs(self.pairs)
         pairs = read_usable_pairs(self.pairs)
         if len(pairs) < 2:
             raise PairsError(f"{', '.join(map(str, self.pairs))}: {len(pairs)} labelled pairs; label more with "

@@ -54,10 +54,14 @@ class _Bytes:
         return values
 
     def count(self, each: int) -> int:
-        """A uint64 count of records of at least `each` bytes, checked against the bytes left."""
+        """A uint64 count of records of at least `each` bytes, checked against the bytes left after it (a count
+        inside the file, e.g. an image's keypoints, counts what follows it, not the whole file)."""
+        at = self.at
         (n,) = self.unpack("Q")
-        if n * each > len(self.data) - self.at:
-            raise ValueError(f"says it holds {n} records, more than its {len(self.data)} bytes can")
+        left = len(self.data) - self.at
+        if n * each > left:
+            raise ValueError(f"a count at byte {at} says {n} records of at least {each} bytes follow, but only {left} of "
+                             f"its {len(self.data)} bytes are left")
         return n
 
     def array(self, n: int, dtype: np.dtype) -> np.ndarray:

@@ -218,6 +218,9 @@ class TriangulationWorkspace:
     so a later call extracts only new views and matches only pairs with a new view. Removed by `close()` or at
     the end of a `with` block. `parent`: where the folder is made (default: the system's temp folder)."""
 
+    last_points: Optional[Tuple[np.ndarray, List[List[int]]]] = None
+    """The last triangulation's points [N, 3] (as returned) and each one's track: the view indices that see it."""
+
     def __init__(self, parent: Optional[Path] = None) -> None:
         self.root = Path(tempfile.mkdtemp(prefix="hpgs-triangulate-", dir=parent))
         self._views: Dict[int, tuple] = {}  # view -> (photo path, bytes, mtime, max_image_size)
@@ -326,6 +329,10 @@ class TriangulationWorkspace:
         xyz = np.array([p.xyz for p in points], dtype=np.float32).reshape(-1, 3)
         rgb = np.array([p.color for p in points], dtype=np.uint8).reshape(-1, 3)
         keep = np.isfinite(xyz).all(1)
+        # which views see each kept point (its track), for what supervises views with these points (the depth loss)
+        names = {image_id: view_index(image.name) for image_id, image in result.images.items()}
+        tracks = [sorted({names[e.image_id] for e in p.track.elements if e.image_id in names}) for p in points]
+        self.last_points = (xyz[keep], [t for t, k in zip(tracks, keep) if k])
         if points:
             info.mean_track_length = float(result.compute_mean_track_length())
             info.mean_reprojection_error = float(result.compute_mean_reprojection_error())

@@ -237,6 +237,7 @@ class SelectionRounds:
             CONSOLE.print(f"[yellow]restart-from splat does nothing in this run: {why}", soft_wrap=True)
         if self.config.reset_after_add or restart_counts:
             self.model.keep_initial_for_resets()
+        self.tell_strategies()  # the active views as the run starts (a resumed run's: its checkpoint's)
 
         def before_iteration(step: int) -> None:
             if step == first:
@@ -245,6 +246,7 @@ class SelectionRounds:
                 before = len(self.datamanager.active)
                 self.run_round(step)
                 done = self.after_round(step, attrs.optimizers, before, restart_counts, end, active_mode)
+                self.tell_strategies()
                 # The round is recorded once, with what every step after the add did, and logged once.
                 self.datamanager.history[-1] = dataclasses.replace(self.datamanager.history[-1], **done)
                 self.write_log()
@@ -259,6 +261,12 @@ class SelectionRounds:
                 TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], lambda step: self.write_log(), iters=(end - 1,))
             )
         return callbacks
+
+    def tell_strategies(self) -> None:
+        """Give the model's trainer strategies (`hpgs_ns.strategies`), if it runs any, the active views and the
+        points they see now (after a round: once its follow-up, e.g. `seed-points active`'s triangulation, ran)."""
+        if getattr(self.model, "trainer_strategies", None) and hasattr(self.datamanager, "active_views"):
+            self.model.after_views_added(self.datamanager.active_views())
 
     def after_round(self, step: int, optimizers, before: int, restart_counts: Tuple[int, ...], end: int,
                     active_mode: bool) -> Dict[str, Any]:

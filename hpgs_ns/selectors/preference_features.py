@@ -31,6 +31,7 @@ DEFAULT_MODEL = Path(__file__).resolve().parent.parent / "assets" / "preference-
 def load_preference_model(path: Optional[Path], device: str = "cpu"):
     """Load a `hpgs train-pref` checkpoint (default: the model shipped in the package). One-line errors."""
     from hpgs_ns.preference.model import PreferenceModel
+    from hpgs_ns.preference.recipe import PreferenceModelError
 
     path = Path(path) if path is not None else DEFAULT_MODEL
     if not path.is_file():
@@ -43,6 +44,8 @@ def load_preference_model(path: Optional[Path], device: str = "cpu"):
             return PreferenceModel.load(path, device=device).eval()
     except SelectionError:
         raise
+    except PreferenceModelError as err:  # already names the file and the fix
+        raise SelectionError(str(err)) from err
     except Exception as err:
         raise SelectionError(f"{path} is not a usable preference-model checkpoint ({err}); retrain with `hpgs train-pref`") from err
 

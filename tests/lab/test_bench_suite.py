@@ -56,8 +56,23 @@ def test_real12_is_real6s_captures_then_tune6s_with_their_settings():
     assert all(s.path.is_dir() and (s.path / "images_2").is_dir() for s in scenes if s.name != "fox")
 
 
+def test_judge13_is_real6s_captures_and_the_seven_never_tuned_and_all19_adds_tune6():
+    root = require_shared("data")
+    judge = load_suite("judge13", root)
+    real6 = [s for s in load_suite("real6", root) if not s.smoke]
+    tune = load_suite("tune6", root)
+    assert judge[:6] == real6 and len(judge) == 13 and not any(s.smoke for s in judge)
+    assert [s.name for s in judge[6:]] == ["gum-jar", "kumamon-plush", "helmet-chair", "ultraman-figure",
+                                           "guitar-floor", "innovlab-drone", "desk-setup-ff"]
+    assert not {s.name for s in judge} & {s.name for s in tune}  # never a tuning scene
+    for scene in judge[6:]:  # only images_2/ there: read at factor 2
+        assert scene.option_dict() == {"downscale-factor": "2"} and (scene.path / "images_2").is_dir()
+        assert not (scene.path / "images").exists()
+    assert load_suite("all19", root) == judge + tune
+
+
 def test_suite_errors_are_one_line(tmp_path):
-    with pytest.raises(SuiteError, match="unknown suite 'nope'; choose one of real12, real6, tune6 or"):
+    with pytest.raises(SuiteError, match="unknown suite 'nope'; choose one of all19, judge13, real12, real6, tune6 or"):
         load_suite("nope")
     with pytest.raises(SuiteError, match=r"scene 'bonsai': .* does not exist; pass --data-root DIR"):
         load_suite("real6", tmp_path)

@@ -143,6 +143,7 @@ LAYERS = (
     ("rendering and scenes", ("hpgs_ns.cpu_raster", "hpgs_ns.render", "hpgs_ns.scenes", "hpgs_ns.dataparser")),
     ("preference model", ("hpgs_ns.preference",)),
     ("selectors", ("hpgs_ns.selectors",)),
+    ("trainer strategies", ("hpgs_ns.strategies",)),
     ("round records", ("hpgs_ns.selection.records", "hpgs_ns.selection.schedule")),
     ("training parts", ("hpgs_ns.model", "hpgs_ns.datamanager", "hpgs_ns.viewer")),
     ("selection loop", ("hpgs_ns.selection",)),

@@ -14,7 +14,6 @@ import subprocess
 import sys
 import tempfile
 import threading
-import time
 import urllib.error
 import urllib.request
 from pathlib import Path
@@ -175,14 +174,21 @@ def test_oracle_noise_flips_seeded_fraction(label_dir):
     assert [p.label for p in read_pairs(clean_dir / "pairs.csv")] == flipped
 
 
-def test_oracle_noise_is_seeded(tmp_path, label_dir):
-    runs = []
-    for _ in range(2):
-        d = tmp_path / f"copy{len(runs)}"
-        shutil.copytree(label_dir, d, ignore=shutil.ignore_patterns("copy*"))
-        ls.Label(d, oracle="lpips", noise=0.5, seed=3).main()
-        runs.append([p.label for p in read_pairs(d / "pairs.csv")])
-    assert runs[0] == runs[1]
+def test_oracle_noise_flips_some_answers_the_same_for_a_seed_and_others_for_another(tmp_path, label_dir):
+    made = []
+
+    def labels(noise: float, seed: int) -> list:
+        copy = tmp_path / "copies" / str(len(made))  # a fresh copy of the unlabelled pairs each time
+        made.append(copy)
+        shutil.copytree(label_dir, copy, ignore=shutil.ignore_patterns("copies"))
+        ls.Label(copy, oracle="lpips", noise=noise, seed=seed).main()
+        return [p.label for p in read_pairs(copy / "pairs.csv")]
+
+    clean, first, again, other = labels(0.0, 3), labels(0.5, 3), labels(0.5, 3), labels(0.5, 4)
+    flipped = [a != b for a, b in zip(first, clean)]
+    assert 0 < sum(flipped) < len(flipped), flipped  # noise 0.5 flips some answers, not none or all
+    assert again == first  # the same seed flips the same ones
+    assert [a != b for a, b in zip(other, clean)] != flipped  # another seed flips others
 
 
 def test_malformed_inputs_give_one_line_errors(label_dir):
@@ -292,16 +298,15 @@ def test_burst_of_50_label_posts_is_all_written_once(tmp_path):
             sent.wait(timeout=10)  # all 50 connected and sent before the first accept
         except threading.BrokenBarrierError:
             pass  # some could not connect: codes says which
-        start = time.monotonic()
         threading.Thread(target=server.serve_forever, args=(0.05,), daemon=True).start()
         for t in threads:
             t.join(15)
-        elapsed = time.monotonic() - start
     finally:
         server.shutdown()
         server.server_close()
+    # each client's socket timeout (5 s) is the hang guard: a connection the backlog dropped, or an answer that
+    # never came, is its repr in `codes`; how fast the burst is served is benchmarks/label_server_latency.py's
     assert codes == [200] * 50
-    assert elapsed < 5  # no connection waited for a SYN retransmission
     assert _labels(tmp_path / "pairs.csv") == [(i % 2, False) for i in range(50)]
     assert sorted(book.history) == list(range(50))  # each answer applied once
 
@@ -309,12 +314,11 @@ def test_burst_of_50_label_posts_is_all_written_once(tmp_path):
 def test_oversized_body_is_refused_unread(served, label_dir):
     book, port = served
     before = (label_dir / "pairs.csv").read_bytes()
-    # headers announcing 200 MB and no body: an answer before the socket timeout means nothing was read
-    start = time.monotonic()
+    # headers announcing 200 MB and no body, the stream left open: a server that waited for the body would answer
+    # only after its own socket timeout, so the client's shorter one (a socket.timeout here) is the hang guard
     request = _post_raw(port, b"").replace(b"Content-Length: 0", b"Content-Length: 200000000")
     code, headers, body = _raw(port, request, end=False, timeout=ls.SOCKET_TIMEOUT / 2)
     assert (code, headers["Connection"]) == (413, "close") and "65536" in body["error"]
-    assert time.monotonic() - start < ls.SOCKET_TIMEOUT / 2
     # exactly at the limit is fine
     pad = ls.MAX_BODY - len(json.dumps({"id": 0, "value": "1", "pad": ""}))
     payload = json.dumps({"id": 0, "value": "1", "pad": "x" * pad}).encode()
@@ -519,3 +523,61 @@ def test_label_page_in_headless_chromium(label_dir):
         server.server_close()
     shot = np.asarray(Image.open("/tmp/hpgs_label_page.png").convert("RGB"))
     assert shot.shape[:2] == (720, 1280) and shot.std() > 10
+
+
+# --- undo after a restart: the page promises only what the server can undo ------------------------------------
+
+def test_undo_after_a_restart_says_there_is_nothing_to_undo_and_changes_nothing(label_dir):
+    book = ls.LabelBook(label_dir / "pairs.csv")
+    for i in range(len(book.rows)):
+        book.answer(i, "1")
+    restarted = ls.LabelBook(label_dir / "pairs.csv")  # `hpgs label` started again: this session answered nothing
+    server = ls.LabelServer(("127.0.0.1", 0), ls.make_handler(restarted))
+    threading.Thread(target=server.serve_forever, args=(0.05,), daemon=True).start()
+    url = f"http://127.0.0.1:{server.server_address[1]}"
+    try:
+        before = (label_dir / "pairs.csv").read_bytes()
+        with urllib.request.urlopen(url + "/api/state", timeout=10) as r:
+            state = json.loads(r.read())
+        assert state["pair"] is None and state["can_undo"] is False
+        undone = _post(url + "/api/undo", {})
+        assert undone["note"] == ls.NOTHING_TO_UNDO and undone["can_undo"] is False
+        assert (label_dir / "pairs.csv").read_bytes() == before
+        restarted.answer(0, "0")  # an answer of this session is undone as before, without a note
+        assert "note" not in _post(url + "/api/undo", {}) and _labels(label_dir / "pairs.csv")[0] == (None, False)
+    finally:
+        server.shutdown()
+        server.server_close()
+
+
+def _page_after(state: dict) -> dict:
+    """What the page's script shows once it has fetched `state` (run in node, the DOM stubbed): display of the
+    finished page's undo promise and of its note on earlier labels, and the status line."""
+    node = shutil.which("node")
+    if node is None:
+        pytest.skip("node is not installed (runs the page's script without a browser)")
+    script = re.search(r"<script>(.*)</script>", ls.PAGE.read_text(), re.S).group(1)
+    stub = """
+const made = {};
+const el = (id) => made[id] || (made[id] = {id, style: {}, textContent: "", dataset: {}, addEventListener() {}});
+globalThis.document = {getElementById: el, addEventListener() {}, body: {dataset: {}}};
+globalThis.fetch = async () => ({ok: true, json: async () => (STATE)});
+""".replace("STATE", json.dumps(state))
+    report = """
+setTimeout(() => console.log(JSON.stringify({hint: el("undo-hint").style.display, earlier: el("earlier").style.display,
+                                             status: el("status").textContent})), 50);
+"""
+    out = subprocess.run([node, "-e", stub + script + report], capture_output=True, text=True, timeout=30)
+    assert out.returncode == 0, out.stderr
+    return json.loads(out.stdout)
+
+
+def test_the_finished_page_promises_undo_only_when_this_session_can_undo():
+    done = {"total": 8, "labelled": 8, "skipped": 0, "remaining": 0, "pair": None}
+    assert _page_after({**done, "can_undo": True}) == {"hint": "inline", "earlier": "none", "status": ""}
+    after_restart = _page_after({**done, "can_undo": False, "note": ls.NOTHING_TO_UNDO})
+    assert (after_restart["hint"], after_restart["earlier"]) == ("none", "block")
+    assert after_restart["status"] == "\u2014 " + ls.NOTHING_TO_UNDO
+    page = ls.PAGE.read_text()
+    assert re.search(r'<span id="undo-hint">[^<]*<kbd>u</kbd> undoes the last\s+label\)</span>', page)  # only in there
+    assert page.count("undoes the last") == 1

@@ -158,12 +158,25 @@ def test_heldout_split_is_image_disjoint(blur_data):
     assert len(set(images_of(test))) == 12
 
 
-def test_checkpoint_round_trip_gives_identical_scores(blur_model):
-    a = pm.PreferenceModel.load(blur_model)
-    b = pm.PreferenceModel.load(blur_model)
-    x = torch.rand(2, 3, 48, 64)
+def test_checkpoint_round_trip_gives_identical_scores(tmp_path):
+    """A model in memory, saved and loaded back, scores exactly as before. Every tensor the checkpoint carries (head,
+    feature standardisation) is set away from its default, so a save or load that dropped one would show."""
+    torch.manual_seed(0)
+    model = pm.PreferenceModel("alexnet", input_size=40)
     with torch.no_grad():
-        assert torch.equal(a.score(x), b.score(x)) and a.score(x).shape == (2,)
+        model.head.weight.normal_()
+        model.head.bias.fill_(0.25)
+        model.feature_mean.normal_()
+        model.feature_std.uniform_(0.5, 2.0)
+    model.meta = {"backbone_trained": False, "note": "round trip"}
+    loaded = pm.PreferenceModel.load(model.save(tmp_path / "model.pt"))
+    x = torch.rand(3, 3, 48, 64)
+    with torch.no_grad():
+        before, after = model.score(x), loaded.score(x)
+        default = pm.PreferenceModel("alexnet", input_size=40).score(x)
+    assert after.shape == (3,) and torch.equal(before, after)
+    assert not torch.allclose(default, before)  # the scores tell a model with these weights from a default one
+    assert (loaded.backbone_name, loaded.input_size, loaded.meta) == ("alexnet", 40, model.meta)
 
 
 def test_eval_pref_json_prints_exactly_one_object(blur_model, blur_data):

@@ -189,3 +189,16 @@ def test_a_fisher_checkpoint_from_before_the_criterion_resumes_under_trace_only(
         check_resume_matches(pipeline(SelectionConfig(selector="fisher", fisher=type(SelectionConfig().fisher)(
             criterion="dopt")).resume_signature(0)))
     assert "fisher.criterion: checkpoint trace, now dopt" in str(err.value)
+
+
+def test_a_resume_with_another_selector_names_the_selector_not_its_options():
+    from types import SimpleNamespace
+
+    from hpgs_ns.trainer import CheckpointError, check_resume_matches
+
+    saved = {"selector": "farthest", "farthest.tie-tolerance": "0.001", "seed": "0"}
+    now = {"selector": "random", "seed": "0"}
+    with pytest.raises(CheckpointError) as err:
+        check_resume_matches(SimpleNamespace(datamanager=SimpleNamespace(loaded_selection_signature=saved,
+                                                                         selection_signature=now)))
+    assert "(selector: checkpoint farthest, now random)" in str(err.value) and "tie-tolerance" not in str(err.value)

@@ -208,9 +208,9 @@ def test_presets_pick_the_unseen_side_and_rank_only_their_shortlist(one_sided):
     assert all(0 < s for s in selection.scores.values()) and sum(selection.scores.values()) < sum(trace.values())
     dm = trainer.pipeline.datamanager
     pool = len(dm.candidates)
-    for preset in (FarthestDoptSelectorConfig(then=FisherSelectorConfig(criterion="dopt", **light)),
-                   CoverageFisherSelectorConfig(then=FisherSelectorConfig(**light))):
-        names, selection = pick(trainer, preset, preset.name)
+    for name, preset in (("farthest-dopt", FarthestDoptSelectorConfig(then=FisherSelectorConfig(criterion="dopt", **light))),
+                         ("coverage-fisher", CoverageFisherSelectorConfig(then=FisherSelectorConfig(**light)))):
+        names, selection = pick(trainer, preset, name)
         assert_unseen_side(names, az)
         kept = math.ceil(0.2 * pool)
         assert selection.work["shortlist_kept"] == kept and len(selection.scores) == kept
