@@ -24,6 +24,7 @@ import torch
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
 from nerfstudio.utils import writer
 from nerfstudio.utils.rich_utils import CONSOLE
+from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
 from hpgs_ns.errors import UserError
 from hpgs_ns.schedules import restart_schedules
@@ -38,6 +39,31 @@ from hpgs_ns.selectors.base import Selection, SelectionContext, SelectionError, 
 
 class RoundError(UserError, RuntimeError):
     """A selection round cannot run as configured."""
+
+
+class RoundProgress:
+    """A rich progress bar of the views a selector renders, shown from the first one it reports (a selector that
+    renders nothing shows none). Its total is the round's active views and candidates, one pass over each."""
+
+    def __init__(self, description: str, total: int) -> None:
+        self.description, self.total = description, max(int(total), 1)
+        self.bar: Optional[Progress] = None
+        self.task = None
+
+    def advance(self, views: int) -> None:
+        if self.bar is None:
+            self.bar = Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed} views"),
+                                TimeElapsedColumn(), console=CONSOLE, transient=True)
+            self.bar.start()
+            self.task = self.bar.add_task(self.description, total=self.total)
+        self.bar.advance(self.task, int(views))
+
+    def __enter__(self) -> RoundProgress:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self.bar is not None:
+            self.bar.stop()
 
 
 class SelectionRounds:
@@ -334,7 +360,10 @@ class SelectionRounds:
         if not context.candidates:
             raise SelectionError("no withheld views left to select from")
         start = time.perf_counter()
-        selection = check_selection(self.selector.select(context), context)
+        with RoundProgress(f"selection round {len(dm.history) + 1} ({self.config.selector})",
+                           len(context.active) + len(context.candidates)) as progress:
+            context.progress = progress.advance
+            selection = check_selection(self.selector.select(context), context)
         seconds = time.perf_counter() - start
         names = dm.image_names
         dm.activate(selection.indices)

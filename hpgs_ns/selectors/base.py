@@ -54,6 +54,9 @@ class SelectionContext:
     generator: torch.Generator
     """Seeded random generator for any randomness the selector needs."""
     device: torch.device = field(default_factory=lambda: torch.device("cpu"))
+    progress: Callable[[int], None] = field(default=lambda views: None)
+    """Call with the number of views just rendered: the round shows a progress bar of them (a CPU round can take
+    minutes). Selectors that render nothing never call it."""
 
 
 @dataclass

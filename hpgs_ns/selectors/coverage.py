@@ -174,6 +174,7 @@ class CoverageSelector:
         changed = []
         for batch in self.batches(context, views, splat.params["means"]) if views else ():
             pairs = self.project(context, splat, batch)
+            context.progress(len(batch.views))
             entries = table.entries(pairs.gaussian_ids, pair_bins(splat, pairs, batch.viewmats, centres))
             weights = max_weights(pairs)
             table.add(entries, weights)
@@ -187,6 +188,7 @@ class CoverageSelector:
         scores: Dict[int, float] = {}
         for batch in self.batches(context, views, splat.params["means"]):
             pairs = self.project(context, splat, batch)
+            context.progress(len(batch.views))
             seen = table.entries(pairs.gaussian_ids, pair_bins(splat, pairs, batch.viewmats, centres))
             image = render_values(pairs, table.uncovered(seen), background=1.0)
             scores.update(zip(batch.views, image.double().mean((1, 2)).tolist()))

@@ -262,6 +262,7 @@ class FisherSelector:
                 sh_via_color=self.config.sh_via_color, drop_hidden=self.config.drop_hidden, linearize=self.config.linearize,
             )
         full = context.cameras[torch.tensor(batch.views, dtype=torch.long)]
+        context.progress(len(batch.views))
         self._count("views_rendered", len(batch.views))
         self._count("pixels_rendered", len(batch.views) * batch.width * batch.height)
         self._count("pixels_full_resolution", int((full.width * full.height).sum()))

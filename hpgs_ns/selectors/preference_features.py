@@ -73,6 +73,7 @@ def _batched(pref, context: SelectionContext, views: Sequence[int], short_side: 
         chunk = list(views[start : start + batch])
         full = context.cameras[torch.tensor(chunk, dtype=torch.long)]
         renders = context.render(chunk, _render_short_side(pref, short_side, full))
+        context.progress(len(chunk))
         for key, n in (("views_rendered", len(chunk)), ("pixels_rendered", sum(im.shape[0] * im.shape[1] for im in renders)),
                        ("pixels_full_resolution", int((full.width * full.height).sum())), ("model_forwards", len(chunk))):
             work[key] = work.get(key, 0) + n
