@@ -144,7 +144,13 @@ def selector_options(selector: str, extra_args: List[str]) -> Optional[Dict]:
 
         with PARSE_LOCK:  # tyro reads the options' docstrings from source
             config = tyro.cli(type(config), args=own, default=config)
-    return {k: (str(v) if isinstance(v, Path) else v) for k, v in dataclasses.asdict(config).items() if k != "_target"}
+    return _plain_options(dataclasses.asdict(config))
+
+
+def _plain_options(options: Dict) -> Dict:
+    """A config's `asdict` as JSON: paths as text, no `_target` (a preset's parts are nested configs, each with one)."""
+    return {k: _plain_options(v) if isinstance(v, dict) else (str(v) if isinstance(v, Path) else v)
+            for k, v in options.items() if k != "_target"}
 
 
 def preference_model_hash(selector: str, options: Optional[Dict]) -> Optional[str]:

@@ -21,6 +21,7 @@ from helpers import lab_commands_env
 from hpgs_lab.executors import ExecutorConfig, LocalExecutor, RayExecutor, SlurmExecutor
 from hpgs_lab.report import load_results, markdown_table
 from hpgs_lab.results import RunResult
+from hpgs_lab import runs
 from hpgs_lab.runs import Bench
 from hpgs_ns.errors import UserError
 
@@ -136,14 +137,16 @@ def test_ray_sweep_matches_local_and_resumes_after_the_driver_is_killed(local_re
     assert f"| {tiny_scene.name} | hpgs | random | 2 |" in table and f"| {tiny_scene.name} | hpgs | farthest | 2 |" in table
 
 
-def test_slurm_path_through_submitit_local_executor(local_results, tiny_scene, tmp_path):
+def test_slurm_path_through_submitit_local_executor(local_results, tiny_scene, tmp_path, monkeypatch):
     pytest.importorskip("submitit", reason="needs submitit: pip install 'hpgs-ns[cluster]'")
     out = tmp_path / "bench"
     done = out / tiny_scene.name / "hpgs" / "random" / "seed1.json"
     done.parent.mkdir(parents=True)
     shutil.copy(local_results / tiny_scene.name / "hpgs" / "random" / "seed1.json", done)
     before = done.stat().st_mtime_ns
-    # `nope` is no selector: its run fails, is reported with its log, and the other run's result is kept.
+    # `nope` is no selector: with the check before launch skipped, its run fails, is reported with its log, and the
+    # other run's result is kept.
+    monkeypatch.setattr(runs, "check_commands", lambda *args, **kwargs: None)
     cluster = ExecutorConfig(
         executor="slurm", slurm_cluster="local", slurm_gpus_per_run=0, slurm_cpus_per_run=1, slurm_time_min=10
     )

@@ -151,8 +151,10 @@ def test_missing_preference_model_fails_at_startup(tmp_path):
         HpgsSelectorConfig(model=tmp_path / "nope.pt").setup()
     bad = tmp_path / "bad.pt"
     bad.write_bytes(b"not a checkpoint")
-    with pytest.raises(SelectionError, match="not a usable preference-model checkpoint"):
+    with pytest.raises(SelectionError) as err:
         HpgsSelectorConfig(model=bad).setup()
+    # the path and the fix once (the loader's own line, not wrapped in a second)
+    assert str(err.value) == f"{bad}: not a readable checkpoint (UnpicklingError); retrain with `hpgs train-pref`"
 
 
 def spearman(a, b) -> float:
