@@ -18,10 +18,10 @@ from pathlib import Path
 import pytest
 from helpers import lab_commands_env
 
+from hpgs_lab import runs
 from hpgs_lab.executors import ExecutorConfig, LocalExecutor, RayExecutor, SlurmExecutor
 from hpgs_lab.report import load_results, markdown_table
 from hpgs_lab.results import RunResult
-from hpgs_lab import runs
 from hpgs_lab.runs import Bench
 from hpgs_ns.errors import UserError
 
