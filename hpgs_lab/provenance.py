@@ -43,6 +43,7 @@ CODE_FILES = (
     "selection/early_stop.py",
     "selection/records.py", "selection/rounds.py", "selection/schedule.py", "selection/snapshots.py",
     "selectors/base.py", "selectors/registry.py",
+    "strategies/__init__.py", "strategies/base.py", "strategies/depth_loss.py", "strategies/registry.py",
 )
 # Everything else: cannot change a run's numbers.
 NOT_CODE_FILES = (
