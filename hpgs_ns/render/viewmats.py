@@ -7,6 +7,9 @@ C++ builds for CPU-side camera batches of 32, 20 and 7 views).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import Dict, Iterator, List, Sequence, Tuple, Union
+
 import torch
 
 
@@ -19,3 +22,39 @@ def world_to_camera(camera_to_world: torch.Tensor) -> torch.Tensor:
     viewmat[:, :3, 3:4] = -R_inv @ camera_to_world[:, :3, 3:4]
     viewmat[:, 3, 3] = 1.0
     return viewmat
+
+
+@dataclass
+class ViewBatch:
+    """Views of one rendered size, with their cameras in the rasterizer's form."""
+
+    views: List[int]
+    viewmats: torch.Tensor
+    """[C, 4, 4] world-to-camera."""
+    Ks: torch.Tensor
+    """[C, 3, 3] intrinsics at the rendered size."""
+    width: int
+    height: int
+
+
+def view_batches(cameras, views: Sequence[int], resolution_scale: float, view_batch: int,
+                 to: Union[torch.device, torch.Tensor]) -> Iterator[ViewBatch]:
+    """`views` (indices into nerfstudio `cameras`) rendered at `resolution_scale`, grouped by rendered size, at most
+    `view_batch` per group; matrices moved `.to(to)` (a device, or a tensor whose dtype and device they take)."""
+    picked = cameras[torch.tensor([int(v) for v in views], dtype=torch.long)]
+    if resolution_scale != 1.0:
+        picked.rescale_output_resolution(resolution_scale)
+    sizes: Dict[Tuple[int, int], List[int]] = {}
+    for k in range(len(views)):
+        sizes.setdefault((int(picked.width[k]), int(picked.height[k])), []).append(k)
+    for (W, H), rows in sizes.items():
+        for start in range(0, len(rows), view_batch):
+            chunk = rows[start : start + view_batch]
+            cams = picked[torch.tensor(chunk, dtype=torch.long)]
+            yield ViewBatch(
+                views=[int(views[k]) for k in chunk],
+                viewmats=world_to_camera(cams.camera_to_worlds.reshape(-1, 3, 4)).to(to),
+                Ks=cams.get_intrinsics_matrices().reshape(-1, 3, 3).to(to),
+                width=W,
+                height=H,
+            )

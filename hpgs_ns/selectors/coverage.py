@@ -36,7 +36,7 @@ from torch import Tensor
 from hpgs_ns.errors import check_option
 from hpgs_ns.render.coverage import ProjectedPairs, max_weights, project_visible, render_values
 from hpgs_ns.render.pair_render import Splat
-from hpgs_ns.render.viewmats import world_to_camera
+from hpgs_ns.render.viewmats import ViewBatch, view_batches
 from hpgs_ns.selectors.base import Selection, SelectionContext, SelectorConfig
 from hpgs_ns.selectors.farthest import nearest_centre_distance
 
@@ -71,18 +71,6 @@ class CoverageSelectorConfig(SelectorConfig):
         check_option(FLAG + "tie-tolerance", self.tie_tolerance, 0 <= self.tie_tolerance < 1, "must be in [0, 1)",
                      "0 takes the highest score alone")
 
-
-@dataclass
-class ViewBatch:
-    """Views of one rendered size, with their cameras in the rasterizer's form."""
-
-    views: List[int]
-    viewmats: Tensor
-    """[C, 4, 4] world-to-camera."""
-    Ks: Tensor
-    """[C, 3, 3] intrinsics at the rendered size."""
-    width: int
-    height: int
 
 
 def fibonacci_sphere(n: int, dtype: torch.dtype = torch.float32, device=None) -> Tensor:
@@ -142,22 +130,7 @@ class CoverageSelector:
     def batches(self, context: SelectionContext, views: Sequence[int], like: Tensor) -> Iterator[ViewBatch]:
         """`views` grouped by rendered size, at most `view_batch` per group, with their matrices in the dtype and on
         the device of `like`."""
-        cameras = context.cameras[torch.tensor([int(v) for v in views], dtype=torch.long)]
-        if self.config.resolution_scale != 1.0:
-            cameras.rescale_output_resolution(self.config.resolution_scale)
-        sizes: Dict[Tuple[int, int], List[int]] = {}
-        for k in range(len(views)):
-            sizes.setdefault((int(cameras.width[k]), int(cameras.height[k])), []).append(k)
-        for (W, H), rows in sizes.items():
-            for start in range(0, len(rows), self.config.view_batch):
-                cams = cameras[torch.tensor(rows[start : start + self.config.view_batch], dtype=torch.long)]
-                yield ViewBatch(
-                    views=[int(views[k]) for k in rows[start : start + self.config.view_batch]],
-                    viewmats=world_to_camera(cams.camera_to_worlds.reshape(-1, 3, 4)).to(like),
-                    Ks=cams.get_intrinsics_matrices().reshape(-1, 3, 3).to(like),
-                    width=W,
-                    height=H,
-                )
+        return view_batches(context.cameras, views, self.config.resolution_scale, self.config.view_batch, like)
 
     def project(self, context: SelectionContext, splat: Splat, batch: ViewBatch) -> ProjectedPairs:
         pairs = project_visible(splat, batch.viewmats, batch.Ks, batch.width, batch.height)

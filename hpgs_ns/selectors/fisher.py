@@ -58,7 +58,7 @@ from typing_extensions import Annotated
 
 from hpgs_ns.errors import check_option
 from hpgs_ns.render.pair_render import PairRender, Splat, render_pairs, sh_squared_gradients
-from hpgs_ns.render.viewmats import world_to_camera
+from hpgs_ns.render.viewmats import ViewBatch, view_batches
 from hpgs_ns.selectors.base import Selection, SelectionContext, SelectionError, SelectorConfig
 
 FISHER_PARAMS = ("means", "features_dc", "features_rest", "scales", "opacities")
@@ -200,18 +200,6 @@ class FisherSelectorConfig(SelectorConfig):
                      "unknown criterion", "choose trace, dopt or dopt-block")
 
 
-@dataclass
-class ViewBatch:
-    """Views of one image size, with their cameras in the rasterizer's form."""
-
-    views: List[int]
-    viewmats: torch.Tensor
-    """[C, 4, 4] world-to-camera."""
-    Ks: torch.Tensor
-    """[C, 3, 3] intrinsics at the rendered size."""
-    width: int
-    height: int
-
 
 class FisherSelector:
     """Greedy information-gain selection; each pick joins H_train before the next."""
@@ -236,24 +224,7 @@ class FisherSelector:
 
     def batches(self, context: SelectionContext, views: Sequence[int]) -> Iterator[ViewBatch]:
         """`views` grouped by rendered size, at most `view_batch` per group."""
-        device = context.device
-        cameras = context.cameras[torch.tensor([int(v) for v in views], dtype=torch.long)]
-        if self.config.resolution_scale != 1.0:
-            cameras.rescale_output_resolution(self.config.resolution_scale)
-        sizes: Dict[Tuple[int, int], List[int]] = {}
-        for k in range(len(views)):
-            sizes.setdefault((int(cameras.width[k]), int(cameras.height[k])), []).append(k)
-        for (W, H), rows in sizes.items():
-            for start in range(0, len(rows), self.config.view_batch):
-                chunk = torch.tensor(rows[start : start + self.config.view_batch], dtype=torch.long)
-                cams = cameras[chunk]
-                yield ViewBatch(
-                    views=[int(views[k]) for k in chunk],
-                    viewmats=world_to_camera(cams.camera_to_worlds.reshape(-1, 3, 4)).to(device),
-                    Ks=cams.get_intrinsics_matrices().reshape(-1, 3, 3).to(device),
-                    width=W,
-                    height=H,
-                )
+        return view_batches(context.cameras, views, self.config.resolution_scale, self.config.view_batch, context.device)
 
     def render(self, context: SelectionContext, splat: Splat, batch: ViewBatch) -> PairRender:
         with torch.enable_grad():
