@@ -78,7 +78,7 @@ def oracle_pairs(renders: List[Render], n: int, same_step: bool, seed: int, marg
 
 def recipe_features(trunk_features: Dict[str, torch.Tensor], backbone: str, transform: str) -> torch.Tensor:
     """A recipe's raw features from its trunks' untransformed ones: what PreferenceModel(backbone,
-    feature_transform=transform).raw_features computes (tests/test_preference.py checks they agree)."""
+    feature_transform=transform).raw_features computes (tests/lab/test_pref_loso.py checks they agree)."""
     return torch.cat([transform_pooled(trunk_features[t], transform) for t in backbone.split("+")], dim=1)
 
 

@@ -6,8 +6,8 @@ results folder never mixes runs made by other code or another model without sayi
 "The code" is a hash of the plugin's source files that can move a run's numbers: the training path (model,
 datamanager, dataparser, rounds, trainer, rasterizers, ...) and the run's own selector. Files that cannot (the
 viewer, the CLIs, other selectors; and this lab, which only launches and reports runs) are left out, so that a sweep
-built over several sessions can resume across commits that only touch those; `CODE_FILES` and `NOT_CODE_FILES` must
-between them list every module of hpgs_ns (a test checks). The git commit is recorded beside it, for reading.
+built over several sessions can resume across commits that only touch those. The plugin declares which are which
+(`hpgs_ns.provenance.code_files`). The git commit is recorded beside it, for reading.
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ from typing import Dict, List, Optional
 
 import hpgs_ns
 from hpgs_lab.names import REFERENCES
+from hpgs_ns.provenance import code_files
 
 PACKAGE = Path(hpgs_ns.__file__).resolve().parent  # the plugin's tree: the code that makes a run's numbers
 INSTALLED = PACKAGE  # where the plugin's modules are imported from (PACKAGE is the tree hashed)
@@ -32,26 +33,6 @@ INSTALLED = PACKAGE  # where the plugin's modules are imported from (PACKAGE is 
 # depth in shared state, so two threads in `ast.parse` at once can raise "AST constructor recursion depth
 # mismatch" (python/cpython#106905). Parsing here is milliseconds: one thread at a time.
 PARSE_LOCK = threading.RLock()
-
-# Files (relative to hpgs_ns/) whose change can change any run's numbers.
-CODE_FILES = (
-    "cpu_raster.py", "datamanager.py", "dataparser.py", "image_files.py", "metrics.py", "method_config.py", "model.py",
-    "offline_weights.py", "pipeline.py", "schedules.py", "trainer.py",
-    "render/footprints.py", "render/pair_render.py", "render/rasterize.py", "render/viewmats.py",
-    "scenes/colmap_model.py", "scenes/error_points.py",
-    "scenes/synthetic.py", "scenes/triangulate.py", "scenes/view_points.py", "selection/after_add.py", "selection/config.py",
-    "selection/early_stop.py",
-    "selection/records.py", "selection/rounds.py", "selection/schedule.py", "selection/snapshots.py",
-    "selectors/base.py", "selectors/registry.py",
-    "strategies/__init__.py", "strategies/base.py", "strategies/depth_loss.py", "strategies/registry.py",
-)
-# Everything else: cannot change a run's numbers.
-NOT_CODE_FILES = (
-    "__init__.py", "atomic_write.py", "cli.py", "compat.py", "demo.py", "errors.py", "ns_train.py", "run_config.py",
-    "viewer.py",
-    "preference/", "render/__init__.py", "render/coverage.py", "scenes/__init__.py", "selection/__init__.py",
-    "selection/candidate_log.py", "selection/log.py", "selectors/__init__.py", "selectors/", "suggest/",
-)
 
 
 def selector_files(selector: str) -> List[Path]:
@@ -69,9 +50,10 @@ def selector_files(selector: str) -> List[Path]:
 
 
 def code_hash(selector: Optional[str]) -> str:
-    """sha256 of CODE_FILES and the files of `selector` (a registered name; None for reference rows), each as
-    `code_text` gives it: an edit to a comment or a docstring does not make a sweep's finished runs look stale."""
-    files = {rel: PACKAGE / rel for rel in CODE_FILES}
+    """sha256 of the plugin's code files (`hpgs_ns.provenance.code_files`, in the tree at PACKAGE) and the files of
+    `selector` (a registered name; None for reference rows), each as `code_text` gives it: an edit to a comment or a
+    docstring does not make a sweep's finished runs look stale."""
+    files = {rel: PACKAGE / rel for rel in code_files(PACKAGE)}
     if selector is not None:
         for path in selector_files(selector):
             files[path.relative_to(PACKAGE).as_posix() if path.is_relative_to(PACKAGE) else path.name] = path

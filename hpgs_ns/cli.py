@@ -1,12 +1,11 @@
 """The `hpgs` console script: the project's own tools as tyro subcommands, and those other packages register.
 
 Each command is a dataclass with a `main()` method, defined in the module that does the work; this file only
-lists them (`COMMANDS`), and finds the commands other packages add through the `hpgs.commands` entry point group:
-the lab (hpgs_lab) registers `hpgs bench` there, so the plugin never imports the lab. Imports are lazy so
-`hpgs --help` stays fast: `hpgs --help` imports no command module (the one-line summaries are kept with each
-`Command`; tests/plugin/test_cli_imports.py checks they match the dataclasses' docstrings), and `hpgs CMD --help`
-imports only CMD's module, whose module level imports neither torch nor nerfstudio (those are imported where the
-work is done). tests/plugin/test_cli_imports.py checks both; benchmarks/help_time.py times them.
+lists them (`COMMANDS`), and finds the commands other packages add through the `hpgs.commands` entry point group
+(`hpgs bench` comes that way), so the plugin never imports those packages. Imports are lazy so `hpgs --help`
+stays fast: `hpgs --help` imports no command module (the one-line summaries are kept with each `Command`, and a
+test checks they match the dataclasses' docstrings), and `hpgs CMD --help` imports only CMD's module, whose module
+level imports neither torch nor nerfstudio (those are imported where the work is done).
 """
 
 from __future__ import annotations
@@ -49,16 +48,16 @@ COMMANDS: Dict[str, Command] = {
 }
 
 ENTRY_POINT_GROUP = "hpgs.commands"
-"""Other packages add `hpgs` commands here: an entry point `name = "module:attr"` naming a `Command` (the lab,
-hpgs_lab, registers `bench` in pyproject.toml)."""
+"""Other packages add `hpgs` commands here: an entry point `name = "module:attr"` naming a `Command`."""
 COMMANDS_ENV = "HPGS_COMMANDS"
 """`name=module:attr[,name=module:attr...]`: commands of a package on PYTHONPATH but not pip-installed (so without
-entry points), as nerfstudio's NERFSTUDIO_METHOD_CONFIGS does for methods (scripts/device_env.sh sets it)."""
+entry points), as nerfstudio's NERFSTUDIO_METHOD_CONFIGS does for methods."""
 
 # Commands another package provides, named here only to say how to get one that is missing.
 ELSEWHERE = {
-    "bench": "the lab (hpgs_lab, in this repository), which registers it when installed: pip install -e . in the checkout "
-             f"(or, uninstalled, {COMMANDS_ENV}=bench=hpgs_lab.cli:bench with the checkout on PYTHONPATH)",
+    "bench": "the benchmark package, which registers it through the hpgs.commands entry points when installed: "
+             f"pip install -e . in the project's checkout (or, not installed, {COMMANDS_ENV}=bench=MODULE:ATTR with it on "
+             "PYTHONPATH)",
 }
 
 

@@ -1,4 +1,4 @@
-"""Runs saved by hpgs-ns 0.1 and 0.2, read by 0.4: every compatibility rule in one place.
+"""Runs saved by earlier hpgs-ns versions, read by this one: every compatibility rule in one place.
 
 0.1 saved a VanillaPipelineConfig with the selection loop's options on the datamanager; 0.2 the hpgs pipeline with
 those options still on the datamanager (`--pipeline.datamanager.selector`, ...). 0.3 moved them to
@@ -9,7 +9,7 @@ classes in `hpgs_ns.trainer`, which YAML looks up there: the trainer re-exports 
 
 from __future__ import annotations
 
-from typing import Any, Dict, Tuple
+from typing import Any, Dict, List, Optional, Tuple
 
 # Options that moved from the datamanager to `--pipeline.selection` in 0.3: old name -> new name.
 MOVED_FROM_DATAMANAGER: Dict[str, str] = {
@@ -78,3 +78,53 @@ def fill_added_signature_keys(saved: Dict[str, str], now: Dict[str, str]) -> Dic
     """`saved` with every key added since it was written (and present `now`) set to the value it trained with."""
     added = {k: v for k, v in ADDED_SIGNATURE_KEYS.items() if k in now and k not in saved}
     return {**saved, **added} if added else saved
+
+
+# Resume-signature keys of the trainer options 0.5 removed (they did not help on the tuning scenes): the flag each
+# checkpoint key stands for. A checkpoint trained with one is refused in one line (`removed_options`).
+REMOVED_SIGNATURE_KEYS: Dict[str, str] = {
+    "late-view-boost": "--pipeline.datamanager.late-view-boost",
+    "sh-degree-by-age": "--pipeline.model.sh-degree-by-age",
+    "means-lr-by-age": "--pipeline.model.means-lr-by-age",
+    "random-points": "--pipeline.datamanager.random-points",
+}
+# The after-add options 0.5 removed, as the "after-add" signature names them.
+REMOVED_AFTER_ADD = ("refine-steps", "reset-opacity", "lr-rewind", "lr-restart", "restart-at-last-add", "restart-from",
+                     "error-points")
+
+
+def removed_options(saved: Dict[str, str]) -> List[str]:
+    """The removed options (as flags with their values) a checkpoint's signature says it trained with."""
+    out = [f"{flag} {saved[key]}" for key, flag in REMOVED_SIGNATURE_KEYS.items() if key in saved]
+    if str(saved.get("near-cull", "")).endswith(" to end"):
+        out.append("--pipeline.model.near-cull-to-end True")
+    words = [] if saved.get("after-add", "off") == "off" else saved["after-add"].split(", ")
+    out += [f"--pipeline.selection.after-add.{w}" for w in words if w.split(" ", 1)[0] in REMOVED_AFTER_ADD]
+    return out
+
+
+SEEDED_RESTARTS = "after-add.restart-seeded-starts"
+
+
+def seeded_restarts_key(saved: Dict[str, str], now: Dict[str, str]) -> Dict[str, str]:
+    """A checkpoint's signature in today's form for restart-seeded-starts: checkpoints written before it had its own
+    key (when it was off by default) name it inside "after-add" only when it was on, and never restarted otherwise."""
+    words = [] if saved.get("after-add", "off") == "off" else saved["after-add"].split(", ")
+    flag = next((w for w in words if w.startswith("restart-seeded-starts ")), None)
+    if flag is None:
+        return {**saved, SEEDED_RESTARTS: "False"} if SEEDED_RESTARTS in now and SEEDED_RESTARTS not in saved else saved
+    rest = ", ".join(w for w in words if w != flag) or "off"
+    out = {**saved, "after-add": rest}
+    if SEEDED_RESTARTS in now and SEEDED_RESTARTS not in saved:
+        out[SEEDED_RESTARTS] = flag.split(" ", 1)[1]
+    return out
+
+
+def near_cull_flags(saved: Optional[str]) -> str:
+    """The near-cull options that give a checkpoint's "near-cull" signature back (`None`: it had none)."""
+    if saved is None:
+        return "--pipeline.model.near-cull-screen 0: the active start had no floater guard before 0.4"
+    words = saved.split()
+    flags = f"--pipeline.model.near-cull-screen {words[0]} --pipeline.model.near-cull-depth {words[1]}"
+    flags += f" --pipeline.model.near-cull-support {words[words.index('support') + 1] if 'support' in words else 1}"
+    return flags

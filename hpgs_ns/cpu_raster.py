@@ -37,10 +37,10 @@ Algorithm
 
 Everything runs in the dtype of `means` (float32 or float64; the tests check gradients in float64).
 
-Speed (benchmarks/bench_cpu_raster.py, results in benchmarks/results/cpu_raster.json): 10k Gaussians at 128x128,
-splatfacto settings, forward+backward in about 0.35 s on one core of a shared 2-core machine. The work is a few
-dozen elementwise ops per step on ~2 MB tensors; where the cores are oversubscribed, OpenMP's hand-offs between
-threads dominate (several times slower with 2 threads than with 1), so prefer OMP_NUM_THREADS=1 there.
+Speed: 10k Gaussians at 128x128, splatfacto settings, forward+backward in about 0.35 s on one core of a shared
+2-core machine. The work is a few dozen elementwise ops per step on ~2 MB tensors; where the cores are
+oversubscribed, OpenMP's hand-offs between threads dominate (several times slower with 2 threads than with 1), so
+prefer OMP_NUM_THREADS=1 there.
 """
 
 from __future__ import annotations
@@ -80,8 +80,8 @@ def _mm(a: Tensor, b: Tensor) -> Tensor:
     """a @ b for stacks of tiny matrices ([..., n, k] @ [..., k, m]).
 
     On CUDA as a sum of broadcast outer products, not `@`: for millions of 3x3 matrices batched matmul launches
-    cuBLAS GEMMs tile by tile, which was 82% of the GPU time of a Fisher round on an H100
-    (benchmarks/results/gpu/fisher_profile_h100.txt). On the CPU `@` is the faster one (about 2x)."""
+    cuBLAS GEMMs tile by tile, which was most of the GPU time of a Fisher round when profiled on an H100. On the
+    CPU `@` is the faster one (about 2x)."""
     return _mm_broadcast(a, b) if a.is_cuda else a @ b
 
 

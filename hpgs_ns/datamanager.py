@@ -71,28 +71,12 @@ class ActiveDatamanagerConfig(FullImageDatamanagerConfig):
     after each round with the views it added (new points away from the splat join it as Gaussians); too few points
     -> random points, with one line naming the count. `random`: splatfacto's random points (as
     --pipeline.model.random-init True)."""
-    random_points: Literal["cube", "views"] = "cube"
-    """Where a splat with no seed points starts (colmap without a point cloud, seed-points random, or active that
-    found too few):
-    `cube`, splatfacto's random points in a cube of side --pipeline.model.random-scale around the origin; `views`,
-    points on the active views' pixel rays at distances around where their optical axes meet, each in its pixel's
-    colour (`hpgs_ns.scenes.view_points`), drawn again from all active views when the splat restarts. Either is a
-    random start for after-add's restarts. --pipeline.model.random-init True keeps the cube."""
-    random_points_count: int = 50000
-    """How many points `random-points views` draws (splatfacto's num-random for its cube)."""
     seed_points_min: int = 100
     """`seed-points active`: fewer triangulated points than this and the splat starts from random points instead
     (one line naming the count), and a restart keeps its step-0 Gaussians. A few hundred accurate points seed a
     splat well; a handful, mostly from one pair of views, may not beat splatfacto's random start."""
     strict_init: bool = False
     """Deprecated: --pipeline.datamanager.seed-points colmap-initial."""
-    late_view_boost: int = 1
-    """Each pass over the active views holds a view this many times while it trails the active views' mean number
-    of training draws by more than one, so a view added late catches up on its share of the steps instead of being seen as
-    often as the rest from then on (a view added at step 18400 of 20000 otherwise gets ~1/20 of 1600 steps). Draws
-    count from the last restart (a restarted splat has seen no view yet). 1:
-    every view once a pass (off, the default: on the tuning scenes more draws for late views moved error from the
-    initial views' surroundings to theirs without lowering it, docs/lab/late-view-boost.md)."""
     def __post_init__(self) -> None:
         # tyro builds this config while it parses the command line: a value that makes no sense is a one-line error
         # before nerfstudio prints the config or makes a run folder. (A config.yml is read without __init__.)
@@ -103,8 +87,6 @@ class ActiveDatamanagerConfig(FullImageDatamanagerConfig):
         check_option(flag + "num-initial-views", self.num_initial_views,
                      self.num_initial_views >= 1 or bool(self.initial_view_names), "must be at least 1",
                      "pass 1 or more (or name the views: --pipeline.datamanager.initial-view-names)")
-        check_option(flag + "late-view-boost", self.late_view_boost, self.late_view_boost >= 1, "must be at least 1",
-                     "pass 1 (off) or e.g. 3")
         check_option(flag + "camera-res-scale-factor", self.camera_res_scale_factor, self.camera_res_scale_factor > 0,
                      "must be > 0", "pass e.g. 0.5 for half resolution, or 1")
         check_option(flag + "max-thread-workers", self.max_thread_workers,
@@ -170,8 +152,6 @@ class ActiveDatamanager(FullImageDatamanager):
         self.excluded = {self._view_index(v, "excluded") for v in self.config.exclude_views}
         self.active: List[int] = self._initial_views()
         self.history: List[RoundRecord] = []
-        self.visits: Dict[int, int] = {}
-        """Training steps each view was drawn for since step 0 or the last restart (late-view-boost reads them)."""
         self.selection_signature: Optional[Dict[str, str]] = None
         """The run's selection options as the checkpoint keeps them (set by the pipeline; see `HpgsTrainer`)."""
         self.loaded_selection_signature: Optional[Dict[str, str]] = None
@@ -187,7 +167,7 @@ class ActiveDatamanager(FullImageDatamanager):
                 CONSOLE.print("seed points: the capture has no point cloud, so they are triangulated from the active views "
                               "(--pipeline.datamanager.seed-points auto; `colmap` keeps splatfacto's random start)",
                               soft_wrap=True, highlight=False)
-        elif self.seed_points_mode == "colmap" and not has_points and test_mode == "val" and self.config.random_points == "cube":
+        elif self.seed_points_mode == "colmap" and not has_points and test_mode == "val":
             CONSOLE.print("seed points: the capture has no point cloud, so the splat starts from random points "
                           "(--pipeline.datamanager.seed-points auto triangulates the active views instead)",
                           soft_wrap=True, highlight=False)
@@ -213,9 +193,6 @@ class ActiveDatamanager(FullImageDatamanager):
                 self._drop_seed_points()  # a resume: the checkpoint replaces the splat and says how it started
             else:
                 self._triangulate_seed_points()
-        if self.config.random_points == "views" and test_mode == "val" and "points3D_xyz" not in self.train_dataparser_outputs.metadata \
-                and not getattr(self.config, "start_from_checkpoint", False):
-            self._view_seed_points()
         self.train_unseen_cameras = self.sample_train_cameras()
 
     # ---- which views are active ----------------------------------------------------------------------------
@@ -317,26 +294,6 @@ class ActiveDatamanager(FullImageDatamanager):
         meta = self.train_dataparser_outputs.metadata
         meta["points3D_xyz"], meta["points3D_rgb"] = points
         CONSOLE.print(f"seed points: {points[0].shape[0]} triangulated from the {len(self.active)} initial views")
-
-    def points_along_active_views(self) -> Tuple[torch.Tensor, torch.Tensor]:
-        """`random-points views` for the active views now: (xyz [N, 3], rgb uint8 [N, 3])."""
-        from hpgs_ns.scenes.view_points import points_along_views
-
-        return points_along_views(self.photo_cameras, self.train_dataset.get_numpy_image, self.active,
-                                  self.config.random_points_count, generator=self.generator)
-
-    def _view_seed_points(self) -> None:
-        """`random-points views` at the start: the splat's random points drawn along the initial views' rays, marked
-        as a random start (`points3D_guessed` in the metadata the model is set up with) so after-add's restarts
-        treat them as one."""
-        if self.config.random_points_count < 1:
-            raise ActiveViewError(f"--pipeline.datamanager.random-points-count {self.config.random_points_count}: "
-                                  "must be at least 1")
-        meta = self.train_dataparser_outputs.metadata
-        meta["points3D_xyz"], meta["points3D_rgb"] = self.points_along_active_views()
-        self.train_dataset.metadata["points3D_guessed"] = True  # what the model is set up with (`metadata`)
-        CONSOLE.print(f"random points: {meta['points3D_xyz'].shape[0]} along the rays of the {len(self.active)} "
-                      "initial views (--pipeline.datamanager.random-points views)")
 
     def triangulation_workspace(self):
         """The run's `TriangulationWorkspace`, made on first use and removed when the datamanager goes (or at exit).
@@ -459,30 +416,15 @@ class ActiveDatamanager(FullImageDatamanager):
         return self._colmap_xyz, self._colmap_observers, "the COLMAP tracks"
 
     def sample_train_cameras(self) -> List[int]:
-        """A shuffled pass over the active views (nerfstudio calls this whenever a pass is used up; an add starts a
-        new one): each view once, or `late-view-boost` times while it is behind (`pass_views`)."""
+        """A shuffled pass over the active views, each once (nerfstudio calls this whenever a pass is used up; an add
+        starts a new one)."""
         if not hasattr(self, "active"):  # called by the parent constructor before the split exists
             return [0]
-        views = self.pass_views()
+        views = list(self.active)
         order = torch.randperm(len(views), generator=self.generator).tolist()
         return [views[i] for i in order]
 
-    def pass_views(self) -> List[int]:
-        """The views of the next pass: every active view, and `late-view-boost - 1` more copies of each one behind,
-        trained on more than one time fewer than the active views' mean (a pass's own spread is one; none when the
-        boost is 1)."""
-        views = list(self.active)
-        boost = int(getattr(self.config, "late_view_boost", 1))
-        if boost > 1 and views:
-            visits = getattr(self, "visits", {})
-            mean = sum(visits.get(i, 0) for i in views) / len(views)
-            views += [i for i in self.active for _ in range(boost - 1) if visits.get(i, 0) < mean - 1]
-        return views
-
     def next_train(self, step: int):
-        if self.train_unseen_cameras:  # counted before the parent pops it and, at a pass's end, draws the next pass
-            first = self.train_unseen_cameras[0]
-            self.visits[first] = self.visits.get(first, 0) + 1
         camera, data = super().next_train(step)
         index = camera.metadata["cam_idx"]
         assert index in self.active, f"training view {index} is not active"
@@ -499,7 +441,6 @@ class ActiveDatamanager(FullImageDatamanager):
         # Where the shuffled pass over the active views stands: a resumed run visits them in the same order.
         state["train_unseen"] = [int(i) for i in self.train_unseen_cameras]
         state["generator"] = self.generator.get_state()
-        state["visits"] = {str(i): int(n) for i, n in self.visits.items()}  # what late-view-boost compares
         return state
 
     def set_extra_state(self, state: Dict[str, Any]) -> None:
@@ -519,6 +460,5 @@ class ActiveDatamanager(FullImageDatamanager):
                 record.scores = {by_file[n]: v for n, v in record.scores.items()}
         if "generator" in state:
             self.generator.set_state(state["generator"])
-        self.visits = {int(i): int(n) for i, n in (state.get("visits") or {}).items()}
         unseen = [int(i) for i in state.get("train_unseen", [])]
         self.train_unseen_cameras = unseen if unseen and set(unseen) <= set(self.active) else self.sample_train_cameras()

@@ -12,12 +12,12 @@ densification strategy and changes only those three things:
 
 Training, eval and selection renders all go through one method, `_rasterize_cameras`, with splatfacto's settings
 and activations from `hpgs_ns.render.rasterize` (which FisherRF's pair renders read too); a CPU test pins it to
-stock splatfacto's `get_outputs` (tests/test_render_matches_splatfacto.py).
+stock splatfacto's `get_outputs` (a CPU test).
 
 It also owns what the selection rounds and the selectors need of rendering: eval-mode batched renders
 (`render_views`), `eval_mode()`, the active SH degree, the resolved rasterizer, and the splat as plain tensors
-(`splat()`, for FisherRF's pair renders); and it can go back to its step-0 state mid-run (`reset_to_initial`, for
-`reset-after-add`).
+(`splat()`, for FisherRF's pair renders); it can go back to its step-0 state mid-run (`reset_to_initial`, for
+`reset-after-add` and the restarts), and it calls its trainer strategies' hooks (`hpgs_ns.strategies`).
 """
 
 from __future__ import annotations
@@ -101,32 +101,15 @@ class HpgsSplatfactoModelOptions(SplatfactoModelConfig):
     rasterizer: Literal["auto", "gsplat", "cpu"] = "auto"
     """Which rasterizer renders the splat: gsplat's CUDA kernels, the pure-PyTorch CPU twin, or auto (gsplat when
     CUDA is available)."""
-    sh_degree_by_age: bool = False
-    """Open each Gaussian's spherical-harmonic degrees with its own age, one degree per sh-degree-interval steps
-    since a training view first saw it, instead of with the run's step: content first seen after step 0 then gets
-    its base colour before its view-dependent terms, as the first views' content did (a late view's content is
-    otherwise fitted with every coefficient at once from a few views). Off: splatfacto's one degree for all; off
-    by default because on the tuning scenes it did not lower the schedule cost (docs/lab/restart-colmap.md). With
-    no view added it still acts, on Gaussians first seen after step 0."""
-    means_lr_by_age: bool = False
-    """Run each Gaussian's position learning rate down the means' decay from the step a training render first saw it
-    to the end of the run (the whole decay squeezed into the steps it had left), instead of from step 0 or the last
-    restart: Gaussians that a late view brings (its triangulated seed points) or first shows can still move, as the
-    first views' did, where the shared schedule has the rate near its floor (at 16500 of 20000 steps, with a
-    restart at 11400, about 1/15 of the start rate). Every Gaussian ends at the final rate. Off: one schedule for
-    all. Gaussians in view from the run's (or a restart's) first pass keep the shared schedule, so with no view
-    added it barely acts."""
     near_cull_screen: Optional[float] = None
-    """At each densification step (while densification runs), also remove the Gaussians that, seen from any camera
-    of the training split, the candidates' included (their poses, never their photos), lie nearer than
-    near-cull-depth x that camera's median depth and cover more than this fraction of its larger image side
-    (splatfacto's cull-screen-size measure, 0.15), unless an active training view renders them on its surface (a
-    wall beside a candidate camera that the training views see stays). Such Gaussians float in front of cameras no training view
-    looks through, where gsplat's own screen-size cull, which sees only the training view, cannot find them; in
-    runs that started from random points they darken the test views beside those cameras
-    (docs/lab/floater-guard-plan.md). None (the default): 0.15 for a splat that starts from the active views'
-    points (`seed-points active`, or `auto` on a capture without a point cloud), where those floaters grow; off for
-    the other starts, where it was not judged. 0: off for every start."""
+    """At each densification step, also remove the Gaussians that, seen from any camera of the training split, the
+    candidates' included (their poses, never their photos), lie nearer than near-cull-depth x that camera's median
+    depth and cover more than this fraction of its larger image side (splatfacto's cull-screen-size measure, 0.15),
+    unless active training views render them on their surface (a wall beside a candidate camera that the training
+    views see stays). Such Gaussians float in front of cameras no training view looks through, where gsplat's own
+    screen-size cull, which sees only the training view, cannot find them. None (the default): 0.15 for a splat that
+    starts from the active views' points (`seed-points active`, or `auto` on a capture without a point cloud), where
+    those floaters grow; off for the other starts, where it was not judged. 0: off for every start."""
     near_cull_depth: float = 0.25
     """near-cull-screen's depth bound, as a fraction of each camera's median depth of the Gaussians in its image."""
     near_cull_support: int = 2
@@ -134,13 +117,6 @@ class HpgsSplatfactoModelOptions(SplatfactoModelConfig):
     suspect only one view renders there goes too: a real surface beside a camera is rendered by every training view
     that sees it, a Gaussian that reproduces one view's pixels from the wrong depth by that view alone. 1: one is
     enough (the guard's first version)."""
-    near_cull_to_end: bool = False
-    """Keep near-cull-screen acting after densification stops, at densification's interval, to the run's last step.
-    Off: it acts only while densification runs. The Gaussians left in front of the test cameras that collapse in
-    runs are wide (largest sigma, median 0.3, where the same views' final-sets have 0.06) and a 3D-scale prune bound,
-    which acts only while densification runs, did not reach them: they seem to grow after densification stops, when
-    views added late pull on the splat; its pilot decides (docs/lab/late-floaters-plan.md)."""
-
     def __post_init__(self) -> None:
         parent = getattr(super(), "__post_init__", None)
         if parent is not None:
@@ -180,8 +156,8 @@ HpgsSplatfactoModelConfig = make_dataclass(
 
 
 ACTIVE_START_NEAR_CULL = 0.15
-"""near-cull-screen where it is left unset and the splat starts from the active views' points: the guard that met
-#46's real6 judge with near-cull-support 2 (docs/lab/late-floaters-plan.md)."""
+"""near-cull-screen where it is left unset and the splat starts from the active views' points (judged for that start
+only, with near-cull-support 2)."""
 
 
 def near_cull_screen_for(config: HpgsSplatfactoModelConfig, seed_points: str) -> float:
@@ -212,12 +188,9 @@ class HpgsSplatfactoModel(SplatfactoModel):
         seed_points = self.seed_points
         colours = None
         seeded = seed_points is not None and not self.config.random_init and seed_points[1].shape[0] > 0
-        guessed = seeded and bool(self.kwargs.get("metadata", {}).get("points3D_guessed"))
-        self.random_start = not seeded or guessed
-        """Started from random points: splatfacto's cube (no point cloud, random-init, or seed-points random) or the
-        datamanager's `random-points views` (after-add restart-random-starts reads it)."""
-        self.view_points_start = guessed
-        """Started from `random-points views`: a restart draws them again from the active views."""
+        self.random_start = not seeded
+        """Started from splatfacto's random cube (no point cloud, random-init, or seed-points random): after-add
+        restart-random-starts reads it."""
         if seeded:
             # Splatfacto builds seed colours with `.cuda()`; hand it none and set them below on any device.
             colours = seed_points[1]
@@ -243,82 +216,6 @@ class HpgsSplatfactoModel(SplatfactoModel):
             if name not in self.gauss_params
         }
 
-    # ---- rendering helpers for selection -------------------------------------------------------------------
-
-    # ---- SH degrees by a Gaussian's age (sh-degree-by-age) -----------------------------------------------------
-
-    SEEN_AT = "seen_at"
-    """Strategy-state key: per Gaussian, 1 + the model step at which a training render first saw it (0: not yet).
-    In the strategy's state, gsplat's split, duplicate and prune carry it (children inherit their parent's age),
-    add_gaussians starts new rows at 0, a restart clears it, and checkpoints keep it."""
-
-    def seen_at(self) -> torch.Tensor:
-        """[N] long: `SEEN_AT`, created (all 0) when the strategy's state has none yet."""
-        seen = self.strategy_state.get(self.SEEN_AT)
-        if seen is None:
-            seen = torch.zeros(self.num_points, dtype=torch.long, device=self.means.device)
-            self.strategy_state[self.SEEN_AT] = seen
-        if seen.shape[0] != self.num_points:
-            raise RuntimeError(f"sh-degree-by-age: {seen.shape[0]} ages for {self.num_points} Gaussians")
-        return seen
-
-    def sh_age_mask(self) -> Optional[torch.Tensor]:
-        """[N, K - 1] 0/1: which of each Gaussian's higher SH coefficients are open at this step under
-        sh-degree-by-age (degree l opens l x sh-degree-interval steps after the Gaussian was first seen; one not
-        yet seen has only its base colour). None when the option is off or the model has no SH."""
-        if not self.config.sh_degree_by_age or self.config.sh_degree <= 0:
-            return None
-        seen = self.seen_at()
-        age = torch.where(seen > 0, self.step + 1 - seen, torch.zeros_like(seen))
-        degree = torch.clamp(age // self.clocked(self.config.sh_degree_interval), max=self.config.sh_degree)
-        rest = self.gauss_params["features_rest"]
-        # the SH coefficient k = 1, 2, ... belongs to degree floor(sqrt(k))
-        coefficient_degree = torch.arange(1, rest.shape[1] + 1, device=rest.device).sqrt().floor().long()
-        return (coefficient_degree[None, :] <= degree[:, None]).to(rest.dtype)
-
-    def tracks_ages(self) -> bool:
-        """Whether an option reads the Gaussians' ages (`SEEN_AT`): training renders then record them."""
-        return bool(self.config.sh_degree_by_age or self.config.means_lr_by_age)
-
-    # ---- position learning rate by a Gaussian's age (means-lr-by-age) ---------------------------------------
-
-    means_before_step: Optional[torch.Tensor] = None
-    """means-lr-by-age: the means as the training render saw them, before the optimizer's step."""
-
-    def means_lr_ratio(self, multiplier) -> torch.Tensor:
-        """[N] each Gaussian's own position learning rate over the shared one at this step, for the means' decay
-        `multiplier` (`hpgs_ns.schedules.DecayMultiplier`, squeezed by its `speed` after a restart). A Gaussian first
-        seen at model step b follows the whole decay from b to the schedule's end; never seen, or seen from step 0:
-        1. Model steps and the scheduler's positions both count from the last restart."""
-        length = max(multiplier.max_steps / max(float(multiplier.speed), 1e-9), 1.0)  # the steps the decay spans now
-        step = float(min(self.step, length))
-        seen = self.seen_at()
-        born = (seen.double() - 1).clamp(min=0.0)  # seen_at is 1 + the step first seen; 0: never
-        own = ((step - born) / (length - born).clamp(min=1.0)).clamp(0.0, 1.0)
-        ratio = multiplier.at_fraction(own) / multiplier(step)  # the shared rate: the schedule at this position
-        return torch.where(seen > 0, ratio, torch.ones_like(ratio)).to(self.means.dtype)
-
-    @torch.no_grad()
-    def scale_young_means_steps(self) -> bool:
-        """means-lr-by-age, after the optimizer's step and before densification changes the rows: each Gaussian's
-        step on its mean scaled by `means_lr_ratio` (Adam's step is proportional to its learning rate, so this is
-        that Gaussian having its own rate). Returns whether it acted."""
-        before, self.means_before_step = self.means_before_step, None
-        decay = self.means_decay()
-        means = self.gauss_params["means"]
-        if before is None or decay is None or before.shape != means.shape:
-            return False
-        ratio = self.means_lr_ratio(decay).to(means.device)
-        means.data.copy_(before + (means.data - before) * ratio[:, None])
-        return True
-
-    @torch.no_grad()
-    def mark_seen(self, radii: torch.Tensor) -> None:
-        """Record the Gaussians a training render saw (radii [C, N] or [C, N, 2] > 0) for the first time."""
-        visible = (radii > 0).reshape(radii.shape[0], radii.shape[1], -1).any(-1).any(0)
-        seen = self.seen_at()
-        seen.masked_fill_(visible & (seen == 0), int(self.step) + 1)
-
     @property
     def active_sh_degree(self) -> Optional[int]:
         """The SH degree splatfacto renders with at the current step (None: plain RGB colours)."""
@@ -326,7 +223,7 @@ class HpgsSplatfactoModel(SplatfactoModel):
             return None
         return min(self.step // self.clocked(self.config.sh_degree_interval), self.config.sh_degree)
 
-    # ---- the step-keyed schedule's speed (after-add restart-at-views) ------------------------------------------
+    # ---- the step-keyed schedule's speed (after-add restarts) ------------------------------------------
 
     clock_scale: float = 1.0
     """Every step count of splatfacto's schedule (densification start, interval and stop, opacity-reset interval,
@@ -349,13 +246,11 @@ class HpgsSplatfactoModel(SplatfactoModel):
 
     def _set_refine_windows(self) -> None:
         """Where densification stops (stop-split-at) and where its screen-size split and cull stop
-        (stop-screen-size-at), on this model's clock, both kept open until `refine_until` (after-add refine-steps).
-        Screen size too: a floater just in front of a late view fills its screen, and only the screen-size cull sees
-        that (splatfacto runs it from step reset-alpha-every x refine-every to stop-screen-size-at, 3000-4000)."""
+        (stop-screen-size-at), on this model's clock."""
         cfg, strategy = self.config, self.strategy
-        strategy.refine_stop_iter = max(self.clocked(cfg.stop_split_at), int(self.refine_until))
+        strategy.refine_stop_iter = self.clocked(cfg.stop_split_at)
         if cfg.stop_screen_size_at > 0:  # 0: the user turned screen-size refinement off
-            strategy.refine_scale2d_stop_iter = max(self.clocked(cfg.stop_screen_size_at), int(self.refine_until))
+            strategy.refine_scale2d_stop_iter = self.clocked(cfg.stop_screen_size_at)
 
     def _get_downscale_factor(self) -> int:
         # splatfacto's rule with the resolution schedule on this model's clock
@@ -411,30 +306,6 @@ class HpgsSplatfactoModel(SplatfactoModel):
             antialiased=self.config.rasterize_mode == "antialiased",
             backend=self.rasterizer_name,
         )
-
-    # ---- after an add (`hpgs_ns.selection.after_add`) -------------------------------------------------------
-
-    refine_until: int = 0
-    """Model step before which densification runs even past stop-split-at (set by after-add refine-steps)."""
-
-    def extend_refinement(self, until_step: int) -> int:
-        """Keep splatfacto's densification (split, duplicate, cull, periodic opacity reset, and the screen-size split
-        and cull) running until trainer step `until_step`, even past stop-split-at. Returns the model step it now
-        stops at."""
-        self.refine_until = max(int(self.refine_until), int(until_step) - int(self.step_offset))
-        self._set_refine_windows()
-        return int(self.strategy.refine_stop_iter)
-
-    @torch.no_grad()
-    def reset_opacities(self, optimizers: Dict[str, torch.optim.Optimizer]) -> int:
-        """Splatfacto's periodic opacity reset, now (gsplat's `reset_opa` at twice the cull threshold, opacities' Adam
-        moments cleared). Returns how many Gaussians it lowered."""
-        from gsplat.strategy.ops import reset_opa  # pure PyTorch: safe on a CPU machine
-
-        value = float(self.config.cull_alpha_thresh) * 2.0
-        lowered = int((self.gauss_params["opacities"] > torch.logit(torch.tensor(value))).sum())
-        reset_opa(params=self.gauss_params, optimizers=optimizers, state=self.strategy_state, value=value)
-        return lowered
 
     # ---- seed points after a round (`seed-points active`) -------------------------------------------------------
 
@@ -510,16 +381,6 @@ class HpgsSplatfactoModel(SplatfactoModel):
         return k
 
     @torch.no_grad()
-    def opaque_points(self) -> Tuple[torch.Tensor, torch.Tensor]:
-        """The centres [K, 3] and base colours [K, 3] (uint8, from the SH DC term) of the Gaussians at least
-        cull-alpha-thresh opaque, the ones splatfacto's culling keeps: what `after-add restart-from splat` starts
-        from."""
-        keep = torch.sigmoid(self.opacities.squeeze(-1)) >= self.config.cull_alpha_thresh
-        dc = self.features_dc[keep]
-        rgb = splatfacto.SH2RGB(dc) if self.config.sh_degree > 0 else torch.sigmoid(dc)
-        return self.means[keep].detach().cpu(), (rgb.clamp(0, 1) * 255).round().to(torch.uint8).cpu()
-
-    @torch.no_grad()
     def replace_gaussians(self, xyz: torch.Tensor, rgb: torch.Tensor, optimizers) -> int:
         """Drop every Gaussian and start from the points `xyz` [K, 3] with colours `rgb` [K, 3] (uint8), as
         splatfacto's `populate_modules` starts from seed points (`add_gaussians`); they become the state later
@@ -542,18 +403,6 @@ class HpgsSplatfactoModel(SplatfactoModel):
 
     def step_cb(self, optimizers, step: int) -> None:
         super().step_cb(optimizers, step - self.step_offset)
-        first = not hasattr(self, "schedulers")
-        self.schedulers = getattr(optimizers, "schedulers", {})  # means-lr-by-age reads the means' decay
-        if first and self.config.means_lr_by_age and self.means_decay() is None:
-            from nerfstudio.utils.rich_utils import CONSOLE
-
-            CONSOLE.print("[yellow]means-lr-by-age does nothing in this run: the means' learning rate has no hpgs decay "
-                          "schedule (FloatExponentialDecaySchedulerConfig); use `ns-train hpgs`'s optimizers", soft_wrap=True)
-
-    def means_decay(self):
-        """The means' `DecayMultiplier` (means-lr-by-age evaluates it per Gaussian), or None without one."""
-        multipliers = getattr(getattr(self, "schedulers", {}).get("means"), "lr_lambdas", ())
-        return multipliers[0] if multipliers and hasattr(multipliers[0], "at_fraction") else None
 
     # ---- trainer strategies (`hpgs_ns.strategies`): the model calls their hooks, knowing none by name -------------
 
@@ -578,8 +427,6 @@ class HpgsSplatfactoModel(SplatfactoModel):
     def step_post_backward(self, step: int) -> None:
         for strategy in getattr(self, "trainer_strategies", []):
             strategy.post_backward(self, step)
-        if self.config.means_lr_by_age:
-            self.scale_young_means_steps()
         if self.step_offset and getattr(self.strategy, "verbose", False):
             # gsplat prints "Step N: ..." on the model's clock, which a restart sets back to 0: name both clocks
             with contextlib.redirect_stdout(io.StringIO()) as said:
@@ -612,11 +459,7 @@ class HpgsSplatfactoModel(SplatfactoModel):
         return (strategy.refine_start_iter < step < strategy.refine_stop_iter and step % strategy.refine_every == 0)
 
     def is_near_cull_step(self) -> bool:
-        """Whether near-cull-screen acts at this model step: at densification's steps, and with near-cull-to-end at
-        every step of its interval after it stops."""
-        strategy, step = self.strategy, self.step
-        if self.config.near_cull_to_end and step >= strategy.refine_stop_iter:
-            return step % strategy.refine_every == 0
+        """Whether near-cull-screen acts at this model step: at densification's steps."""
         return self.is_refine_step()
 
     @torch.no_grad()
@@ -736,18 +579,15 @@ class HpgsSplatfactoModel(SplatfactoModel):
         for optimizer in optimizers.values():
             optimizer.state = defaultdict(dict)  # fresh Adam moments and step counts, as at step 0
         self.strategy_state = self.strategy.initialize_state(scene_scale=1.0)
-        self.refine_until = 0
         self._set_refine_windows()
         self.step_offset = int(step)
         self.step = 0
 
     def get_extra_state(self) -> Dict[str, Any]:
         # Plain ints and tensors only, so checkpoints load with torch.load(weights_only=True).
-        state: Dict[str, Any] = {"step_offset": int(self.step_offset), "refine_until": int(self.refine_until),
-                                 "clock_scale": float(self.clock_scale),
+        state: Dict[str, Any] = {"step_offset": int(self.step_offset), "clock_scale": float(self.clock_scale),
                                  # how the splat started: a resume does not rebuild the start (seed-points active)
-                                 "random_start": bool(self.random_start), "view_points_start": bool(self.view_points_start),
-                                 "near_culled": int(self.near_culled)}
+                                 "random_start": bool(self.random_start), "near_culled": int(self.near_culled)}
         if self.keep_initial_in_checkpoint:
             state["initial_gaussians"] = dict(self.initial_gaussians)
         # The densification strategy's running statistics (gradient sums, visibility counts since the last
@@ -760,11 +600,8 @@ class HpgsSplatfactoModel(SplatfactoModel):
         self.near_culled = int(state.get("near_culled", 0))
         if "random_start" in state:
             self.random_start = bool(state["random_start"])
-            self.view_points_start = bool(state.get("view_points_start", False))
         if float(state.get("clock_scale", 1.0)) != 1.0:
             self.set_clock_scale(float(state["clock_scale"]))
-        if state.get("refine_until"):
-            self.extend_refinement(int(state["refine_until"]) + self.step_offset)
         if "strategy_state" in state:
             saved = state["strategy_state"]
             self.strategy_state.update({k: v.to(self.device) if isinstance(v, torch.Tensor) else v for k, v in saved.items()})
@@ -790,13 +627,8 @@ class HpgsSplatfactoModel(SplatfactoModel):
         Splatfacto's own `get_outputs` cannot be called instead: it moves the intrinsics with `.cuda()`, calls the
         `rasterization` its module imported from gsplat (only swappable process-wide), builds viewmats with a
         `torch.compile`d function (recompiled for every batch shape and device) and renders one camera at a time.
-        tests/test_render_matches_splatfacto.py keeps this equal to it."""
+        A CPU test keeps this equal to it."""
         params = {k: v if crop_ids is None else v[crop_ids] for k, v in self.gauss_params.items()}
-        mask = self.sh_age_mask() if self.training else None
-        if mask is not None:
-            # Closed coefficients get no gradient, so they stay at their start (0) until they open: renders
-            # outside training need no mask.
-            params["features_rest"] = params["features_rest"] * (mask if crop_ids is None else mask[crop_ids])[..., None]
         return rasterize_splat(
             self._rasterize, params, self.active_sh_degree,
             viewmats=world_to_camera(camera_to_worlds).to(self.device), Ks=Ks.to(self.device), width=width,
@@ -843,10 +675,6 @@ class HpgsSplatfactoModel(SplatfactoModel):
             self.last_view = RenderedView(int(index), world_to_camera(camera_to_world.detach())[0].to(self.device),
                                           K[0].detach().to(self.device), W, H)
         render, alpha, self.info = self._rasterize_cameras(camera_to_world, K, W, H, render_mode, crop_ids)
-        if self.training and self.tracks_ages():
-            self.mark_seen(self.info["radii"])
-        if self.training and self.config.means_lr_by_age:
-            self.means_before_step = self.means.detach().clone()
         if self.training:
             self.strategy.step_pre_backward(
                 self.gauss_params, self.optimizers, self.strategy_state, self.step, self.info

@@ -27,7 +27,7 @@ from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineC
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from hpgs_ns import compat
-from hpgs_ns.errors import OptionError, UserError
+from hpgs_ns.errors import UserError
 from hpgs_ns.model import near_cull_screen_for
 from hpgs_ns.render.footprints import PinholeViews
 from hpgs_ns.selection.config import SelectionConfig
@@ -96,10 +96,6 @@ class HpgsPipeline(VanillaPipeline):
     config: HpgsPipelineConfig
 
     def __init__(self, config: HpgsPipelineConfig, device: str, test_mode="val", *args, **kwargs):
-        if getattr(config.model, "random_init", False) and getattr(config.datamanager, "random_points", "cube") == "views":
-            raise OptionError("--pipeline.model.random-init True starts from splatfacto's cube, so "
-                              "--pipeline.datamanager.random-points views would do nothing; pass one of them "
-                              "(seed-points random with random-points views for rays without the capture's points)")
         if getattr(config.model, "random_init", False) and getattr(config.datamanager, "seed_points", None) == "auto":
             config.datamanager.seed_points = "colmap"  # random-init asks for a random start: nothing to triangulate
         super().__init__(config, device, test_mode, *args, **kwargs)
@@ -118,29 +114,19 @@ class HpgsPipeline(VanillaPipeline):
         elif not getattr(self.model, "random_start", True):
             # a start from the capture's points: whether it restarts (a default that changed: before, it never did)
             signature["after-add.restart-seeded-starts"] = str(bool(selection.after_add.restart_seeded_starts))
-        if getattr(self.datamanager.config, "late_view_boost", 1) != 1:  # passes weighted by visits
-            signature["late-view-boost"] = str(self.datamanager.config.late_view_boost)
-        if getattr(config.model, "sh_degree_by_age", False):  # Gaussians' ages decide their open SH terms
-            signature["sh-degree-by-age"] = "True"
-        if getattr(config.model, "means_lr_by_age", False):  # Gaussians' ages decide their position learning rates
-            signature["means-lr-by-age"] = "True"
-        if getattr(self.datamanager.config, "random_points", "cube") != "cube":  # restarts draw the splat's points again
-            signature["random-points"] = str(self.datamanager.config.random_points)
         has_near_cull = hasattr(config.model, "near_cull_screen")  # an hpgs model (the guard is its option)
         near_cull = near_cull_screen_for(config.model, signature["seed-points"]) if has_near_cull else 0.0
         self.model.near_cull_screen = near_cull
         if near_cull > 0:  # which Gaussians densification keeps
             support = int(config.model.near_cull_support)
             # support 1 (the first version's rule) keeps the signature checkpoints of that version carry
-            to_end = bool(getattr(config.model, "near_cull_to_end", False))
             signature["near-cull"] = (f"{near_cull:g} {float(config.model.near_cull_depth):g}"
-                                      + (f" support {support}" if support != 1 else "") + (" to end" if to_end else ""))
+                                      + (f" support {support}" if support != 1 else ""))
             if training:
                 dm = self.datamanager
                 self.model.near_cull_views = PinholeViews.from_cameras(dm.train_dataset.cameras, self.model.device)
                 self.model.near_cull_training = lambda: dm.active_cameras
-                when = "at each densification step" + (" and, once densification stops, at its interval to the "
-                                                        "last step" if to_end else "")
+                when = "at each densification step"
                 by_start = " (the active start's default)" if config.model.near_cull_screen is None else ""
                 CONSOLE.print(f"near-cull-screen {near_cull:g}{by_start}: {when}, Gaussians nearer than "
                               f"{config.model.near_cull_depth:g} x the median depth of any of the "
@@ -150,8 +136,7 @@ class HpgsPipeline(VanillaPipeline):
                                  f"{support} training views show them on their surfaces"), soft_wrap=True)
         elif training and has_near_cull:
             defaults = {f.name: f.default for f in fields(config.model)}  # the config's own, so they cannot drift
-            idle = [f"--pipeline.model.{name.replace('_', '-')}" for name in ("near_cull_depth", "near_cull_support",
-                                                                              "near_cull_to_end")
+            idle = [f"--pipeline.model.{name.replace('_', '-')}" for name in ("near_cull_depth", "near_cull_support")
                     if getattr(config.model, name) != defaults[name]]
             if idle:
                 off = "0 (off)" if config.model.near_cull_screen is not None else "off by default for this start"

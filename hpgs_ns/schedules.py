@@ -15,7 +15,6 @@ import math
 from dataclasses import dataclass, field
 from typing import Optional, Type
 
-import torch
 from nerfstudio.engine.optimizers import Optimizers
 from nerfstudio.engine.schedulers import ExponentialDecayScheduler, ExponentialDecaySchedulerConfig
 from torch.optim import Optimizer, lr_scheduler
@@ -66,18 +65,6 @@ class DecayMultiplier:
             t = min(max((step - self.warmup_steps) / span, 0.0), 1.0) if span > 0 else 0.0
             lr = math.exp(math.log(self.lr_init) * (1 - t) + math.log(self.lr_final) * t)
         return float(lr / self.lr_init)
-
-    def at_fraction(self, fraction: torch.Tensor) -> torch.Tensor:
-        """lr / lr_init at each `fraction` [N] of the whole schedule (0: its start, 1: its end, whatever `speed`):
-        `__call__` for many positions at once (means-lr-by-age evaluates one per Gaussian)."""
-        step = fraction.clamp(0.0, 1.0).double() * self.max_steps
-        warm = (step / max(self.warmup_steps, 1)).clamp(0.0, 1.0)
-        ramp = torch.sin(0.5 * math.pi * warm) if self.cosine else warm
-        warming = self.lr_pre_warmup + (self.lr_init - self.lr_pre_warmup) * ramp
-        span = self.max_steps - self.warmup_steps
-        t = ((step - self.warmup_steps) / span).clamp(0.0, 1.0) if span > 0 else torch.zeros_like(step)
-        decaying = torch.exp(math.log(self.lr_init) * (1 - t) + math.log(self.lr_final) * t)
-        return (torch.where(step < self.warmup_steps, warming, decaying) / self.lr_init).to(fraction.dtype)
 
 
 def restart_schedules(optimizers: Optimizers, span: Optional[int] = None) -> None:

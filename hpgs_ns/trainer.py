@@ -30,9 +30,9 @@ from nerfstudio.engine.trainer import Trainer, TrainerConfig
 from nerfstudio.utils import comms
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from hpgs_ns import schedules
+from hpgs_ns import compat, schedules
 from hpgs_ns.atomic_write import atomic_path, write_json_atomic
-from hpgs_ns.compat import fill_added_signature_keys, upgrade_pipeline_config
+from hpgs_ns.compat import upgrade_pipeline_config
 from hpgs_ns.errors import OptionError, UserError
 from hpgs_ns.pipeline import HpgsPipelineConfig
 
@@ -377,33 +377,6 @@ def rebind_optimizers(optimizers, param_groups: Dict[str, List[torch.nn.Paramete
         optimizers.parameters[name] = params
 
 
-SEEDED_RESTARTS = "after-add.restart-seeded-starts"
-
-
-def seeded_restarts_key(saved: Dict[str, str], now: Dict[str, str]) -> Dict[str, str]:
-    """A checkpoint's signature in today's form for restart-seeded-starts: checkpoints written before it had its own
-    key (when it was off by default) name it inside "after-add" only when it was on, and never restarted otherwise."""
-    words = [] if saved.get("after-add", "off") == "off" else saved["after-add"].split(", ")
-    flag = next((w for w in words if w.startswith("restart-seeded-starts ")), None)
-    if flag is None:
-        return {**saved, SEEDED_RESTARTS: "False"} if SEEDED_RESTARTS in now and SEEDED_RESTARTS not in saved else saved
-    rest = ", ".join(w for w in words if w != flag) or "off"
-    out = {**saved, "after-add": rest}
-    if SEEDED_RESTARTS in now and SEEDED_RESTARTS not in saved:
-        out[SEEDED_RESTARTS] = flag.split(" ", 1)[1]
-    return out
-
-
-def near_cull_flags(saved: Optional[str]) -> str:
-    """The near-cull options that give a checkpoint's "near-cull" signature back (`None`: it had none)."""
-    if saved is None:
-        return "--pipeline.model.near-cull-screen 0: the active start had no floater guard before 0.4"
-    words = saved.split()
-    flags = f"--pipeline.model.near-cull-screen {words[0]} --pipeline.model.near-cull-depth {words[1]}"
-    flags += f" --pipeline.model.near-cull-support {words[words.index('support') + 1] if 'support' in words else 1}"
-    return flags + (" --pipeline.model.near-cull-to-end True" if saved.endswith("to end") else "")
-
-
 def check_resume_matches(pipeline) -> None:
     """Refuse (one line) a resume whose selection options differ from those the checkpoint was trained with: the
     round log would mix two selectors' or schedules' choices."""
@@ -419,7 +392,11 @@ def check_resume_matches(pipeline) -> None:
             saved = {**saved, "seed-points": "active"}
         elif now["seed-points"] != "active":
             saved = {**saved, "seed-points": now["seed-points"]}
-    saved = fill_added_signature_keys(seeded_restarts_key(saved, now), now)
+    removed = compat.removed_options(saved)
+    if removed:
+        raise CheckpointError(f"this checkpoint was trained with {' and '.join(removed)}, which hpgs-ns 0.5 removed; "
+                              "resume it with hpgs-ns 0.4, the version that wrote it, or start a new run without --load-dir")
+    saved = compat.fill_added_signature_keys(compat.seeded_restarts_key(saved, now), now)
     changed = [key for key in sorted(set(saved) | set(now)) if saved.get(key) != now.get(key)]
     if "selector" in changed:  # another selector's options are not a change of their own
         selectors = {saved.get("selector"), now.get("selector"), saved.get("shortlist"), now.get("shortlist")} - {None}
@@ -435,8 +412,8 @@ def check_resume_matches(pipeline) -> None:
             hint += (f" (--pipeline.selection.selector {saved['selector']}"
                      + (": the default was hpgs before farthest" if saved["selector"] == "hpgs" else "") + ")")
         if "near-cull" in changed:
-            hint += f" ({near_cull_flags(saved.get('near-cull'))})"
-        if SEEDED_RESTARTS in changed and saved.get(SEEDED_RESTARTS) == "False":
+            hint += f" ({compat.near_cull_flags(saved.get('near-cull'))})"
+        if compat.SEEDED_RESTARTS in changed and saved.get(compat.SEEDED_RESTARTS) == "False":
             hint += " (--pipeline.selection.after-add.restart-seeded-starts False: seeded starts did not restart before)"
         raise CheckpointError(f"this resume changes what the checkpoint was trained with ({diff}); resume with the "
                               f"checkpoint's options{hint}, or start a new run without --load-dir")

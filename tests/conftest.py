@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import sys
+import textwrap
 import urllib.request
 from pathlib import Path
 
@@ -186,3 +187,43 @@ def playwright_or_skip():
     if not Path(CHROMIUM).is_file():
         pytest.skip(f"{CHROMIUM} not found (apt-get install chromium)")
     return sync_playwright
+
+
+# A third-party selector package (the plugin's and the lab's tests of entry-point selectors).
+TOY = textwrap.dedent('''
+    """A third-party selector: always the candidate with the highest index."""
+    from dataclasses import dataclass, field
+    from typing import Type
+
+    from hpgs_ns.selectors.base import Selection, SelectorConfig
+
+
+    class LastSelector:
+        def __init__(self, config):
+            self.config = config
+
+        def select(self, context):
+            picked = sorted(context.candidates)[-context.num_to_pick:]
+            return Selection(indices=picked, scores={c: float(c) for c in context.candidates})
+
+
+    @dataclass
+    class LastSelectorConfig(SelectorConfig):
+        """Always the candidates with the highest index."""
+
+        _target: Type = field(default_factory=lambda: LastSelector)
+        keep_last: int = 1
+        """An option of a third-party selector (unused by its choice)."""
+''')
+
+
+@pytest.fixture
+def toy_plugin(tmp_path, monkeypatch) -> Path:
+    """An installed package `toy_selector` whose entry point registers the selector `last`."""
+    (tmp_path / "toy_selector.py").write_text(TOY)
+    info = tmp_path / "toy_selector-0.1.dist-info"
+    info.mkdir()
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: toy-selector\nVersion: 0.1\n")
+    (info / "entry_points.txt").write_text("[hpgs_ns.selectors]\nlast = toy_selector:LastSelectorConfig\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    return tmp_path

@@ -43,7 +43,7 @@ DIFFERENCES = (
     "a scene, not the values across the two):",
     "- **Preference model.** HP-GS: one model per scene, trained on about 500 pairs its authors labelled on that "
     "scene. Here: one shipped model for every scene (or per-scene models from `--preference-models`).",
-    "- **Test split.** HP-GS: the paper does not describe it; as issue #34 reads it, test views overlap the initial "
+    "- **Test split.** HP-GS: the paper does not describe it; as its authors' code reads, test views overlap the initial "
     "views. Here: every 8th image is held out, never trained on and never an initial view or a candidate.",
     "- **Methods.** HP-GS ran no `farthest` baseline, and the Condorcet winner on kitchen only "
     f"({PAPER_RESULTS['kitchen']['condorcet'][0]:.2f} dB there). Here any selector can run on any scene "

@@ -21,7 +21,7 @@ linear head and cosine distances see unit-scale features:
 `feature_transform` acts on each trunk's pooled vector before concatenation and standardisation: `none`, or
 `sqrt-l2` (element-wise square root, then unit L2 norm per trunk). Square roots temper the few large-magnitude
 taps and the unit norm removes a render's overall feature energy, which differs between scenes; chosen leave one
-scene out on oracle-labelled renders (`benchmarks/pref_loso.py`), it generalised better to unseen scenes.
+scene out on oracle-labelled renders, where it generalised better to unseen scenes.
 
 Checkpoints hold what was trained (head, feature statistics, and the backbone only if it was trained) plus
 the recipe and provenance; frozen pretrained backbones are rebuilt from their packages.

@@ -15,9 +15,8 @@ whole batch of views at once.
 With `linearize` the probes stop at the rasterizer: each pair's projected inputs (means2d, conics, opacity,
 colour) become the leaves, the Jacobian of those 9 numbers w.r.t. the pair's raw parameters is taken once per
 batch (batched backward passes: 6 rows through the projection, 3 through the SH colour), and each probe's
-gradient is the rasterizer's backward followed by one [9 x P] product per pair. The projection's autograd was two
-thirds of a Fisher round's GPU time when it ran once per probe
-(benchmarks/results/gpu/fisher_profile_bonsai_step14000_h100.txt).
+gradient is the rasterizer's backward followed by one [9 x P] product per pair. The projection's autograd was about
+two thirds of a Fisher round's GPU time when it ran once per probe (profiled on an H100).
 
 No library offers per-view gradients of a batched render (gsplat's batched API shares the 3D parameters), which
 is why this is written here.
@@ -30,7 +29,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 
 import torch
 from torch import Tensor
-from torch.profiler import record_function  # named ranges in benchmarks/fisher_probes.py --profile
+from torch.profiler import record_function  # named ranges, so a torch profile shows where a Fisher round's time goes
 
 from hpgs_ns.cpu_raster import project, quat_scale_to_covar, rasterize_pairs, sh_bases, sh_to_color
 from hpgs_ns.render.rasterize import EPS2D, FAR_PLANE, NEAR_PLANE, TILE_SIZE, splat_colors, splat_opacities

@@ -7,9 +7,8 @@ to `max_exhaustive` views, else each view with its nearest views by camera centr
 with the KNOWN relative pose of the pair (within a few pixels of their epipolar lines; COLMAP's own two-view
 RANSAC, which rejects wide-baseline pairs with few matches, is `settings=COLMAP_DEFAULTS`), and triangulates with
 the poses held fixed, so the points are in the cameras' own frame: nerfstudio's normalised (auto-oriented,
-scaled) frame, the frame of `cameras.camera_to_worlds`, in its units. Variants a study rejected (pose-guided
-matching, photos upsampled before SIFT) live in benchmarks/triangulation_variants.py, which plugs its matcher in
-through `TriangulationWorkspace.match_pairs`.
+scaled) frame, the frame of `cameras.camera_to_worlds`, in its units. Another matcher (pose-guided matching, say)
+plugs in by overriding `TriangulationWorkspace.match_pairs`.
 
 One call (a temporary folder, removed at the end):
 
@@ -82,9 +81,8 @@ class TriangulationSettings:
 
 
 COLMAP_DEFAULTS = TriangulationSettings()
-# Chosen on the tuning scenes (benchmarks/triangulation_yield.py, docs/lab/triangulation-yield.md):
-# matches checked against the known poses, a looser ratio test and 5 inliers a pair: 665 points over tune6 at 4 and 8
-# FisherRF views against 360 for COLMAP_DEFAULTS, medians within 1% of the extent, the same seconds a call.
+# Chosen on the tuning scenes: checking matches against the known poses, with a looser ratio test and 5 inliers a
+# pair, yields nearly twice COLMAP_DEFAULTS' points from 4-8 views, as accurate, in the same time.
 KNOWN_POSES = TriangulationSettings(max_ratio=0.9, verification="poses", min_num_inliers=5)
 DEFAULT_SETTINGS = KNOWN_POSES
 
@@ -342,8 +340,8 @@ class TriangulationWorkspace:
                     settings: TriangulationSettings, num_threads: int) -> None:
         """Write these pairs' feature matches into the database: COLMAP's matcher (ratio test `settings.max_ratio`)
         and, for "ransac", COLMAP's two-view geometry (its inlier matches); "poses" verifies them after this.
-        The one seam for another matcher: a subclass overrides it (benchmarks/triangulation_variants.py's guided
-        matching, which writes inlier matches itself). `db_images`: view file name -> (image id, pycolmap Camera)."""
+        The one seam for another matcher: a subclass overrides it (one that verifies its own matches writes inlier
+        matches itself). `db_images`: view file name -> (image id, pycolmap Camera)."""
         pair_file = self.root / "pairs.txt"
         pair_file.write_text("".join(f"{view_file(a)} {view_file(b)}\n" for a, b in pairs))
         matching = pycolmap.FeatureMatchingOptions()

@@ -5,7 +5,7 @@ can change it) every registered selector whose config says `logged_in_candidate_
 scores the candidates the round saw, and each candidate's
 current render is measured against its withheld photo (PSNR, SSIM, LPIPS): the error a selector tries to guess
 without the photo. `candidate_scores.jsonl` in the run folder gets one line per round. It is for tuning selectors
-offline, leave one scene out (`benchmarks/candidate_scores.py`); a run never reads it back. The random stream is
+offline, leave one scene out (`blend`'s weights were fitted on such logs); a run never reads it back. The random stream is
 forked while logging, so a run's own numbers do not depend on whether it logs.
 """
 

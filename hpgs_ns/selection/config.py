@@ -102,13 +102,17 @@ class SelectionLoopConfig(InstantiateConfig):
 
     def build_selector(self):
         """The run's selector: the chosen one, ranking the shortlist's share of the candidates when `shortlist` is
-        set (never under `random`, which stays a uniform baseline: `shortlist_notes` says so at start)."""
+        set (never under a uniform baseline such as `random`: `shortlist_notes` says so at start)."""
         chosen = self.selector_config().setup()
-        if self.shortlist is None or self.selector == "random":
+        if not self.uses_shortlist():
             return chosen
         from hpgs_ns.selectors.shortlist import ShortlistSelector
 
         return ShortlistSelector(self.selector_config(self.shortlist).setup(), chosen, self.shortlist_size, self.shortlist)
+
+    def uses_shortlist(self) -> bool:
+        """Whether a shortlist ranks this run's candidates: one is set and the selector ranks one."""
+        return self.shortlist is not None and self.selector_config().ranks_a_shortlist
 
     def shortlist_notes(self) -> List[str]:
         """Start-up lines for shortlist options that change nothing in this run."""
@@ -117,9 +121,9 @@ class SelectionLoopConfig(InstantiateConfig):
                 return [f"--pipeline.selection.shortlist-size {self.shortlist_size:g} does nothing in this run: no "
                         "shortlist (add --pipeline.selection.shortlist NAME)"]
             return []
-        if self.selector == "random":
+        if not self.selector_config().ranks_a_shortlist:
             return [f"--pipeline.selection.shortlist {self.shortlist} changes nothing in this run: the selector is "
-                    "random, which picks uniformly from every candidate (it is the baseline)"]
+                    f"{self.selector}, which picks uniformly from every candidate (it is the baseline)"]
         if self.shortlist_size >= 1:
             return [f"--pipeline.selection.shortlist {self.shortlist} changes nothing in this run: shortlist-size 1 "
                     "keeps every candidate"]
@@ -157,7 +161,7 @@ class SelectionLoopConfig(InstantiateConfig):
                      # restart-seeded-starts has its own key where it acts (the pipeline's), since its default changed
                      "after-add": self.after_add.describe(skip=("restart_seeded_starts",))}
         used = [self.selector]
-        if self.shortlist is not None and self.selector != "random":  # keys only when set: older checkpoints match
+        if self.uses_shortlist():  # keys only when set: older checkpoints match
             signature.update({"shortlist": str(self.shortlist), "shortlist-size": str(self.shortlist_size)})
             used.append(self.shortlist)
         for name in dict.fromkeys(used):

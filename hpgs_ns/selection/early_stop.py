@@ -1,9 +1,9 @@
 """Skip what a scene does not need: stop adding views once the next one is predicted to gain less than X dB.
 
 `GainModel` is the run-time part: per selector, the predicted test-PSNR gain of the view a round adds, as
-a + b * log(views). It is fitted on benchmark runs, leave one scene out, by the lab's `hpgs_lab.gain_fit` (which says
-how a view's gain is measured against the `initial` reference); `benchmarks/early_stop.py` writes the shipped
-model. The score of the pick is not used yet (`--log-candidate-scores` runs will calibrate it).
+a + b * log(views), fitted offline, leave one scene out, on runs that record their test PSNR at every round (a
+view's gain is measured against a run that trains the same steps on the initial views alone, since training alone
+also raises the PSNR). The score of the pick is not used yet.
 """
 
 from __future__ import annotations
@@ -14,8 +14,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple
 
-# Fitted on the suite's FisherRF-protocol runs (benchmarks/early_stop.py --write-model; docs/early-stop.md): another
-# schedule or resolution wants its own.
+# Fitted on FisherRF-protocol runs of six benchmark scenes (docs/early-stop.md): another schedule or resolution
+# wants its own.
 DEFAULT_GAIN_MODEL = Path(__file__).resolve().parent.parent / "assets" / "gain-model.json"
 ALL = "*"  # the average over selectors
 
@@ -44,12 +44,13 @@ class GainModel:
         from hpgs_ns.errors import UserError
 
         path = Path(path) if path is not None else DEFAULT_GAIN_MODEL
+        shipped = "" if path == DEFAULT_GAIN_MODEL else " (or leave it out for the shipped model)"
         if not path.is_file():
-            raise UserError(f"no gain model at {path}: pass --pipeline.selection.gain-model FILE (fit one with "
-                            "benchmarks/early_stop.py) or drop --pipeline.selection.stop-when-gain-below")
+            raise UserError(f"no gain model at {path}: pass --pipeline.selection.gain-model FILE{shipped} or drop "
+                            "--pipeline.selection.stop-when-gain-below")
         try:
             data = json.loads(path.read_text())
             return cls({k: (float(a), float(b)) for k, (a, b) in data["coefficients"].items()}, list(data.get("fitted_on", [])))
         except (OSError, ValueError, KeyError, TypeError) as err:
-            raise UserError(f"gain model {path} is not readable ({err}); fit one with benchmarks/early_stop.py or drop "
-                            "--pipeline.selection.stop-when-gain-below") from None
+            raise UserError(f"gain model {path} is not readable ({err}); pass another --pipeline.selection.gain-model"
+                            f"{shipped} or drop --pipeline.selection.stop-when-gain-below") from None

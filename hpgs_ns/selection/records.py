@@ -39,7 +39,7 @@ class RoundRecord:
     num_gaussians_before_reset: Optional[int] = None
     num_gaussians_after_reset: Optional[int] = None
     after_add: Dict[str, float] = field(default_factory=dict)
-    """What `--pipeline.selection.after-add` did after this round (refine_until, opacity_reset, lr positions)."""
+    """What `--pipeline.selection.after-add` did after this round (a restart's and `seed-points active`'s points: counts and seconds)."""
 
     def to_dict(self) -> Dict[str, Any]:
         """Plain types only (checkpoints load with `torch.load(weights_only=True)`); the reset counts only when a

@@ -17,7 +17,7 @@ import dataclasses
 import math
 import time
 from pathlib import Path
-from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
+from typing import Any, Callable, Dict, List, Optional, Tuple
 
 import numpy as np
 import torch
@@ -28,7 +28,7 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
 from hpgs_ns.errors import UserError
 from hpgs_ns.schedules import restart_schedules
-from hpgs_ns.selection.after_add import apply_after_add, restarts_at
+from hpgs_ns.selection.after_add import restarts_at
 from hpgs_ns.selection.candidate_log import CandidateLog
 from hpgs_ns.selection.early_stop import GainModel
 from hpgs_ns.selection.log import FILE_NAME, SelectionLog
@@ -79,10 +79,11 @@ class SelectionRounds:
         # A run without rounds (a final-set, `max-rounds 0`) never builds its selector: no preference model to load.
         self._selector = selector if selector is not None or config.max_rounds == 0 else config.build_selector()
         self.run_dir: Optional[Path] = None
-        # Called with each round's record once it is logged (the viewer redraws the roles).
+        # Called with each round's finished record (what followed the add included) once it is logged: the viewer
+        # redraws the roles.
         self.listeners: List[Callable[[RoundRecord], None]] = []
-        if config.log_candidate_scores:
-            self.listeners.append(CandidateLog(self).on_round)
+        # Scores the candidates as the selector saw them, so it runs before anything follows the add.
+        self.candidate_log: Optional[CandidateLog] = CandidateLog(self) if config.log_candidate_scores else None
         self.gain_model = GainModel.load(config.gain_model) if config.stop_when_gain_below is not None else None
         self.stopped: Optional[StopRecord] = None
         """Why selection stopped early, once it has."""
@@ -167,7 +168,7 @@ class SelectionRounds:
         from hpgs_ns.selectors.shortlist import shortlist_count
 
         cfg = self.config
-        if cfg.shortlist is None or cfg.selector == "random":
+        if not cfg.uses_shortlist():
             return
         pool = len(self.datamanager.candidates) - (rounds - 1) * cfg.views_per_round
         if pool <= 0:
@@ -226,17 +227,8 @@ class SelectionRounds:
                 reachable = len(dm.active) + min(count * self.config.views_per_round, len(dm.candidates))
             after_add = self.config.after_add
             restart_counts = after_add.restart_counts(initial, random_start, active_mode and not random_start, reachable)
-            automatic = tuple(n for n in restart_counts if not (after_add.restart_at_last_add and n == reachable))
-            from_splat = after_add.restart_from == "splat"
-            if after_add.restart_at_last_add:
-                CONSOLE.print(f"restart-at-last-add: the splat restarts at {reachable} views, the run's last add"
-                              if reachable in restart_counts else
-                              "[yellow]restart-at-last-add does nothing in this run: no round adds views",
-                              soft_wrap=True)
-            if after_add.error_points and reachable <= len(dm.active):  # a final-set or reference run
-                CONSOLE.print("[yellow]error-points does nothing in this run: no round adds views", soft_wrap=True)
-            if automatic and not after_add.restart_at_views:  # HP-GS's 20 + 7: none
-                at = " and ".join(map(str, automatic))
+            if restart_counts and not after_add.restart_at_views:  # HP-GS's 20 + 7: none
+                at = " and ".join(map(str, restart_counts))
                 if random_start:
                     start, source, flag = "random start", "", "restart-random-starts"
                 elif active_mode:
@@ -244,23 +236,9 @@ class SelectionRounds:
                 else:
                     start, source, flag = "seed points", "the capture's points", "restart-seeded-starts"
                 if source:
-                    source = " from " + ("its own opaque Gaussians" if from_splat else source)
+                    source = " from " + source
                 CONSOLE.print(f"{start}: the splat restarts at {at} views{source} "
                               f"(--pipeline.selection.after-add.{flag} False: never)", soft_wrap=True)
-            if from_splat and restart_counts:
-                also = "; the round's triangulated points away from them join, as after any round" if active_mode else ""
-                CONSOLE.print(f"restart-from splat: restarts at {' and '.join(map(str, restart_counts))} views start from "
-                              f"the splat's own opaque Gaussians{also}", soft_wrap=True)
-        if self.config.reset_after_add:
-            for flag, on in (("error-points", self.config.after_add.error_points),
-                             ("restart-at-last-add", self.config.after_add.restart_at_last_add)):
-                if on:
-                    CONSOLE.print(f"[yellow]{flag} does nothing in this run: reset-after-add returns to the step-0 "
-                                  "Gaussians at every round", soft_wrap=True)
-        if self.config.after_add.restart_from == "splat" and not restart_counts:
-            why = ("reset-after-add returns to the step-0 Gaussians at every round" if self.config.reset_after_add
-                   else "no restart is due (--pipeline.selection.after-add.restart-at-views sets when)")
-            CONSOLE.print(f"[yellow]restart-from splat does nothing in this run: {why}", soft_wrap=True)
         if self.config.reset_after_add or restart_counts:
             self.model.keep_initial_for_resets()
         self.tell_strategies()  # the active views as the run starts (a resumed run's: its checkpoint's)
@@ -276,6 +254,8 @@ class SelectionRounds:
                 # The round is recorded once, with what every step after the add did, and logged once.
                 self.datamanager.history[-1] = dataclasses.replace(self.datamanager.history[-1], **done)
                 self.write_log()
+                for listener in self.listeners:  # the finished record
+                    listener(self.datamanager.history[-1])
             elif self.config.eval_each_round and self.is_scheduled(step):
                 # No round here (none left, or a reference run): the test PSNR at the step still says what the
                 # views so far are worth against a run that added others (early_stop's calibration).
@@ -296,7 +276,7 @@ class SelectionRounds:
 
     def after_round(self, step: int, optimizers, before: int, restart_counts: Tuple[int, ...], end: int,
                     active_mode: bool) -> Dict[str, Any]:
-        """What follows a round's add: reset-after-add, a restart (and the points it starts from), after-add, and
+        """What follows a round's add: reset-after-add, a restart (and the points it starts from), and
         `seed-points active`'s new points. Returns the RoundRecord fields they set (`after_add` to be merged)."""
         done: Dict[str, Any] = {}
         after_add: Dict[str, float] = {}
@@ -304,22 +284,11 @@ class SelectionRounds:
         if self.config.reset_after_add:
             done.update(self.reset_model(step, optimizers))
         elif restarts_at(restart_counts, before, len(self.datamanager.active)):
-            from_splat = (self.config.after_add.restart_from == "splat" and optimizers is not None
-                          and hasattr(self.model, "opaque_points"))
-            splat_points = self.model.opaque_points() if from_splat else None  # before the reset drops them
             done.update(self.reset_model(step, optimizers, end=end))
-            reseeded = self.reseed_from_splat(*splat_points, optimizers) if splat_points is not None else {}
-            if not reseeded:
-                reseeded = self.reseed_from_start(step, optimizers, active_seeds)
+            if active_seeds:
+                after_add.update(self.reseed_from_active(step, optimizers))
                 active_seeds = False  # an active restart triangulated every active view already
-            # else (active mode): the round's triangulated points away from the splat's join, as after any round
-            after_add.update(reseeded)
             done["num_gaussians_after_reset"] = int(self.model.num_points)
-        else:
-            if self.config.after_add.enabled and optimizers is not None:
-                after_add.update(apply_after_add(self.config.after_add, self.model, optimizers, step, end or None))
-            if self.config.after_add.error_points and optimizers is not None:
-                after_add.update(self.add_error_points(step, optimizers, self.datamanager.history[-1].chosen_indices))
         if active_seeds:
             after_add.update(self.add_seed_points(step, optimizers))
         if after_add:
@@ -388,8 +357,8 @@ class SelectionRounds:
         writer.put_scalar("selection/num_active", len(dm.active), step)
         self._log_chosen_render(selection.indices[0], step)
         self._log_scores_plot(selection, step)
-        for listener in self.listeners:
-            listener(record)
+        if self.candidate_log is not None:
+            self.candidate_log.on_round(record)
         return selection
 
     def reset_model(self, step: int, optimizers, end: Optional[int] = None) -> Dict[str, Any]:
@@ -401,8 +370,6 @@ class SelectionRounds:
             raise RoundError("reset-after-add needs the hpgs model and the trainer's optimizers")
         before = model.num_points
         model.reset_to_initial(step, optimizers.optimizers)
-        # the fresh splat has trained on no view: late-view-boost's shares count from here, not from step 0
-        self.datamanager.visits = {}
         if end is None:
             restart_schedules(optimizers)
             what = f"reset after add: {before} -> {model.num_points} Gaussians, schedules restart at step {step}"
@@ -416,45 +383,10 @@ class SelectionRounds:
         writer.put_scalar("selection/num_gaussians_before_reset", before, step)
         return {"reset": True, "num_gaussians_before_reset": int(before), "num_gaussians_after_reset": int(model.num_points)}
 
-    def reseed_from_start(self, step: int, optimizers, active_seeds: bool) -> Dict[str, float]:
-        """A restart's start points when it does not start from the splat: with `seed-points active`, what the
-        active views triangulate now; with `random-points views`, points drawn again along the active views' rays
-        (unless an earlier restart already seeded the splat by triangulation: its step-0 Gaussians are those
-        points); otherwise the step-0 Gaussians the reset put back. Returns the round's `after_add` entries."""
-        triangulated = any(h.after_add.get("seed_points_restart", 0) > 0 for h in self.datamanager.history[:-1])
-        redraw = getattr(self.model, "view_points_start", False) and not triangulated
-        done = self.reseed_from_active(step, optimizers, redraw) if active_seeds else {}
-        if redraw and not done.get("seed_points_restart") and optimizers is not None:
-            done = {**done, **self.reseed_from_views(optimizers)}
-        return done
-
-    def reseed_from_splat(self, xyz: torch.Tensor, rgb: torch.Tensor, optimizers) -> Dict[str, float]:
-        """`after-add restart-from splat`: the splat starts over from its own opaque Gaussians' centres and colours
-        (taken before the reset): `{"splat_points_restart": count}`. None opaque: {} and the restart falls back to
-        `restart-from start`."""
-        if xyz.shape[0] == 0:
-            CONSOLE.print("[yellow]restart-from splat: no Gaussian is opaque enough to keep; this restart starts as "
-                          "restart-from start does", soft_wrap=True)
-            return {}
-        count = self.model.replace_gaussians(xyz, rgb, optimizers)
-        CONSOLE.print(f"restart: the splat starts from its own {count} opaque Gaussians as points "
-                      f"({len(self.datamanager.active)} views)")
-        return {"splat_points_restart": float(count)}
-
-    def reseed_from_views(self, optimizers) -> Dict[str, float]:
-        """`random-points views` at a restart: the splat starts over from points drawn along all active views' rays
-        (not only the initial views'): `{"view_points_restart": count}`."""
-        dm = self.datamanager
-        xyz, rgb = dm.points_along_active_views()
-        count = self.model.replace_gaussians(xyz, rgb, optimizers)
-        CONSOLE.print(f"restart: the splat starts from {count} random points along the rays of {len(dm.active)} views")
-        return {"view_points_restart": float(count)}
-
-    def reseed_from_active(self, step: int, optimizers, views_next: bool = False) -> Dict[str, float]:
+    def reseed_from_active(self, step: int, optimizers) -> Dict[str, float]:
         """`seed-points active` at a restart: the splat starts over from the points the active views triangulate now
-        (not from the initial views' few, or random, points); with too few, from its step-0 Gaussians (or, with
-        `views_next`, from random-points views drawn next). Returns `seed_points_restart` (the count) and
-        `seed_points_seconds`."""
+        (not from the initial views' few, or random, points); with too few, from its step-0 Gaussians. Returns
+        `seed_points_restart` (the count) and `seed_points_seconds`."""
         dm, model = self.datamanager, self.model
         start = time.perf_counter()
         xyz, rgb, info = dm.triangulate_active()
@@ -462,9 +394,8 @@ class SelectionRounds:
         if count:
             CONSOLE.print(f"restart: the splat starts from {count} points triangulated from {len(dm.active)} views")
         else:
-            instead = "random points along the active views' rays" if views_next else "its step-0 Gaussians"
-            CONSOLE.print(f"[yellow]restart: {info.message or 'no points triangulated'}; the splat starts from {instead}",
-                          soft_wrap=True)
+            CONSOLE.print(f"[yellow]restart: {info.message or 'no points triangulated'}; the splat starts from its "
+                          "step-0 Gaussians", soft_wrap=True)
         return {"seed_points_restart": float(count), "seed_points_seconds": float(time.perf_counter() - start)}
 
     def add_seed_points(self, step: int, optimizers) -> Dict[str, float]:
@@ -486,32 +417,6 @@ class SelectionRounds:
                           f"views, {added} away from the splat added ({model.num_points} Gaussians, {seconds:.1f} s)")
         writer.put_scalar("selection/seed_points_added", added, step)
         return {"seed_points_added": float(added), "seed_points_seconds": float(seconds)}
-
-    def add_error_points(self, step: int, optimizers, views: Sequence[int]) -> Dict[str, float]:
-        """`after-add error-points`: for each of `views` (the round's), Gaussians on the rays of the pixels its render
-        gets most wrong (`hpgs_ns.scenes.error_points`). Returns `error_points_added`."""
-        from hpgs_ns.metrics import photo_rgb
-        from hpgs_ns.scenes.error_points import points_where_render_errs
-        from hpgs_ns.scenes.view_points import view_distances
-
-        dm, model = self.datamanager, self.model
-        cameras = dm.train_cameras.to("cpu")  # as trained: the cached photos' size and intrinsics
-        distances = dict(zip(dm.active, view_distances(cameras, dm.active).tolist()))
-        # Derived from (seed, round), as the selection's generator is, so a resumed run adds the same points.
-        generator = torch.Generator().manual_seed(self.seed * 1_000_003 + len(dm.history) + 500_009)
-        added = 0
-        for view in views:
-            camera = cameras[int(view) : int(view) + 1]
-            render, depth, alpha = model.render_with_depth(camera)
-            photo = photo_rgb(dm.cached_train[int(view)]["image"])
-            xyz, rgb = points_where_render_errs(
-                camera.get_intrinsics_matrices()[0], camera.camera_to_worlds[0], render, depth, alpha, photo,
-                self.config.after_add.error_points, distances[int(view)], generator)
-            added += model.add_gaussians(xyz, rgb, optimizers)
-        CONSOLE.print(f"error points after round {len(dm.history)}: {added} Gaussians where the render of its "
-                      f"{len(views)} new view(s) was wrong ({model.num_points} Gaussians)")
-        writer.put_scalar("selection/error_points_added", added, step)
-        return {"error_points_added": float(added)}
 
     @torch.no_grad()
     def test_psnr(self) -> float:

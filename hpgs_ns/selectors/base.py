@@ -96,10 +96,11 @@ class SelectorConfig(InstantiateConfig):
     numbers (the benchmark's code hash)."""
     logged_in_candidate_log: ClassVar[bool] = True
     """Whether `--pipeline.selection.log-candidate-scores` records this selector's score of every candidate."""
+    ranks_a_shortlist: ClassVar[bool] = True
+    """Whether `--pipeline.selection.shortlist` applies under this selector (a uniform baseline ranks every candidate)."""
     fitted_weights: ClassVar[Dict[str, str]] = {}
-    """Options fitted offline on candidate logs, {selector whose z-scored score it weighs: the option of its weight},
-    keyed as `benchmarks/candidate_scores.py --selectors ...` writes them: `hpgs bench --blend-weights FILE` sets
-    them for each scene from that script's leave-one-scene-out JSON."""
+    """Options fitted offline on candidate logs, {selector whose z-scored score it weighs: the option of its weight}:
+    a fit names each weight by the selector it weighs, and this maps that name to the option to set."""
 
     def setup(self, **kwargs) -> Selector:
         return super().setup(**kwargs)

@@ -4,8 +4,8 @@ Each candidate gets farthest's score (distance from its camera centre to the nea
 (cosine distance of its preference feature to the active views' median feature); each is z-scored over the
 candidates of the round and the weighted sum picks. The weights come from offline logs, not GPU sweeps:
 `hpgs bench --log-candidate-scores` records every selector's score of every candidate beside the candidate's
-render error against its withheld photo, and `benchmarks/candidate_scores.py --selectors farthest hpgs` fits
-the weights that best predict that error, leave one scene out (how well they do: docs/selectors.md, `blend`).
+render error against its withheld photo, and an offline fit, leave one scene out, picks the weights that best
+predict that error (how well they do: docs/selectors.md, `blend`).
 """
 
 from __future__ import annotations
@@ -29,10 +29,9 @@ class BlendSelectorConfig(PreferenceSelectorConfig):
     code_files: ClassVar[Tuple[str, ...]] = PreferenceSelectorConfig.code_files + ("selectors/farthest.py", "selectors/hpgs.py")
     # A fitted mix of farthest and hpgs, which the log records: logging it too would feed its own fit.
     logged_in_candidate_log: ClassVar[bool] = False
-    # What `candidate_scores.py --selectors farthest hpgs` fits (`hpgs bench --blend-weights`): each one's weight.
+    # The weights an offline fit of farthest and hpgs sets: each one's option.
     fitted_weights: ClassVar[Dict[str, str]] = {"farthest": "farthest_weight", "hpgs": "hpgs_weight"}
-    # Fitted on every logged scene (fox, juice box, gold cape, campus; seed 1 of the FisherRF protocol):
-    # `python benchmarks/candidate_scores.py benchmarks/results/suite --selectors farthest hpgs`.
+    # Fitted on the candidate logs of four benchmark scenes (fox, juice box, gold cape, campus; FisherRF protocol, seed 1).
     farthest_weight: float = 0.437
     """Weight of the z-scored camera-centre distance."""
     hpgs_weight: float = 0.432

@@ -4,8 +4,6 @@ run (and `hpgs bench`) names each like a selector.
 - `fisher-dopt`: `fisher` with the D-optimal criterion (POp-GS, CVPR'25): `sum log(1 + h_c / (H_train + lambda))`.
 - `farthest-dopt`: `farthest`'s best 20% of the candidates, reranked by D-optimal `fisher` (a geometric shortlist
   reranked by information, as AGILE-GS+ does).
-- `coverage-fisher`: `coverage`'s least-covered 20% of the candidates, reranked by `fisher` (SA-ResGS's coverage
-  prefilter before FisherRF).
 
 Each is its parts' options under one group (`--pipeline.selection.farthest-dopt.then.probes 8`,
 `--pipeline.selection.farthest-dopt.shortlist-size 0.3`).
@@ -16,7 +14,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import ClassVar, Tuple
 
-from hpgs_ns.selectors.coverage import CoverageSelectorConfig
 from hpgs_ns.selectors.farthest import FarthestSelectorConfig
 from hpgs_ns.selectors.fisher import FisherSelectorConfig
 from hpgs_ns.selectors.shortlist import ShortlistPresetConfig
@@ -45,16 +42,3 @@ class FarthestDoptSelectorConfig(ShortlistPresetConfig):
     """The shortlisting selector's options."""
     then: FisherSelectorConfig = field(default_factory=dopt_fisher)
     """The ranking selector's options."""
-
-
-@dataclass
-class CoverageFisherSelectorConfig(ShortlistPresetConfig):
-    """`coverage`'s least-covered `shortlist-size` share of the candidates, reranked by `fisher` (trace)."""
-
-    code_files: ClassVar[Tuple[str, ...]] = ("selectors/coverage.py", "render/coverage.py", "selectors/fisher.py",
-                                             "selectors/shortlist.py", "render/pair_render.py")
-    first: CoverageSelectorConfig = field(default_factory=CoverageSelectorConfig)
-    """The shortlisting selector's options."""
-    then: FisherSelectorConfig = field(default_factory=FisherSelectorConfig)
-    """The ranking selector's options."""
-

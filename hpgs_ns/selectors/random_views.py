@@ -17,6 +17,8 @@ class RandomSelectorConfig(SelectorConfig):
     _target: Type = field(default_factory=lambda: RandomSelector)
     # Its scores are all equal: nothing for the candidate log to record.
     logged_in_candidate_log: ClassVar[bool] = False
+    # The uniform baseline draws from every candidate: a shortlist would make it another selector.
+    ranks_a_shortlist: ClassVar[bool] = False
 
 
 class RandomSelector:

@@ -48,7 +48,6 @@ BUILTIN_SELECTORS: Dict[str, str] = {
     # named combinations of the ones above (`hpgs_ns.selectors.presets`)
     "fisher-dopt": "hpgs_ns.selectors.presets:FisherDoptSelectorConfig",
     "farthest-dopt": "hpgs_ns.selectors.presets:FarthestDoptSelectorConfig",
-    "coverage-fisher": "hpgs_ns.selectors.presets:CoverageFisherSelectorConfig",
 }
 
 

@@ -70,7 +70,8 @@ def test_without_the_lab_hpgs_bench_is_one_line_naming_the_install(not_installed
     assert cli.registered_commands() == {}
     code, out, err = run_hpgs(monkeypatch, capsys, "bench", "--suite", "real6")
     assert code == 1 and out == ""
-    assert err.count("\n") == 1 and err.startswith("hpgs bench needs the lab (hpgs_lab") and "pip install -e ." in err
+    assert err.count("\n") == 1 and err.startswith("hpgs bench needs the benchmark package") and "pip install -e ." in err
+    assert "hpgs_lab" not in err  # the plugin names no package of the lab
     code, out, _ = run_hpgs(monkeypatch, capsys, "--help")  # the plugin's commands are all still there
     assert code == 0 and "bench" not in out and all(name in out for name in cli.COMMANDS)
     code, _, err = run_hpgs(monkeypatch, capsys, "nope")
@@ -104,3 +105,29 @@ def test_bench_default_selectors_are_the_registry_built_ins():
     from hpgs_ns.selectors.registry import BUILTIN_SELECTORS
 
     assert DEFAULT_SELECTORS == tuple(BUILTIN_SELECTORS)
+
+
+# Runs in a fresh interpreter, argv: the heavy modules to look for. Which are loaded after the lab's defaults and rows
+# (what `hpgs bench --help` reads); the registry's names alone: tests/plugin/test_cli_imports.py.
+LAB_SELECTORS_PROBE = """
+import json, sys
+heavy = sys.argv[1:]
+from hpgs_ns.selectors import registry
+names = registry.selector_names()
+from hpgs_lab.protocols import DEFAULT_SELECTORS, row_order
+row_order()
+print(json.dumps({"with_lab": sorted(m for m in heavy if m in sys.modules), "names": names,
+                  "bench": list(DEFAULT_SELECTORS), "builtin": list(registry.BUILTIN_SELECTORS)}))
+"""
+
+
+def test_the_labs_selector_defaults_and_rows_load_neither_torch_nor_nerfstudio():
+    """`hpgs bench --help` reads the lab's default selectors and row order: through the registry's names, without
+    torch or nerfstudio; the defaults are the registry's built-ins, in its order."""
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    proc = subprocess.run([sys.executable, "-c", LAB_SELECTORS_PROBE, "torch", "nerfstudio"], cwd=REPO, env=env,
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    found = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert found["with_lab"] == [], found
+    assert found["bench"] == found["builtin"] == found["names"][:len(found["builtin"])]

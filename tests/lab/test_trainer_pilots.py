@@ -1,4 +1,4 @@
-"""benchmarks/late_view_boost.py: a trainer pilot's arm against `off`, paired by (scene, selector, seed); and
+"""benchmarks/trainer_arms.py: a trainer pilot's arm against `off`, paired by (scene, selector, seed); and
 benchmarks/plot_pilot_curves.py's mean curve over a pilot's runs."""
 
 from __future__ import annotations
@@ -17,9 +17,9 @@ REPO = Path(__file__).resolve().parents[2]
 def pilots():
     sys.path.insert(0, str(REPO / "benchmarks"))
     try:
-        import late_view_boost
         import plot_pilot_curves
-        yield SimpleNamespace(compare=late_view_boost.compare, mean_curve=plot_pilot_curves.mean_curve,
+        import trainer_arms
+        yield SimpleNamespace(compare=trainer_arms.compare, mean_curve=plot_pilot_curves.mean_curve,
                               peaks=plot_pilot_curves.peaks)
     finally:
         sys.path.remove(str(REPO / "benchmarks"))

@@ -53,8 +53,6 @@ BAD_OPTIONS = [
      "leave it out to run every round"),
     (["--pipeline.datamanager.num-initial-views", "0"], "--pipeline.datamanager.num-initial-views 0: must be at least 1",
      "pass 1 or more"),
-    (["--pipeline.datamanager.late-view-boost", "0"], "--pipeline.datamanager.late-view-boost 0: must be at least 1",
-     "pass 1 (off)"),
     (["--pipeline.datamanager.camera-res-scale-factor", "0"],
      "--pipeline.datamanager.camera-res-scale-factor 0.0: must be > 0", "pass e.g. 0.5"),
     (["--pipeline.datamanager.max-thread-workers", "0"], "--pipeline.datamanager.max-thread-workers 0: must be at least 1",

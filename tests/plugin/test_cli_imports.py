@@ -94,29 +94,26 @@ def test_preference_recipe_names_are_the_model_s():
 
 
 # Runs in a fresh interpreter, argv: the heavy modules to look for. Which are loaded after reading the registry's
-# names alone, and after the lab's defaults and rows (what `hpgs bench --help` reads) too.
+# names, order and default alone. (With the lab's defaults and rows on top, as `hpgs bench --help` reads them:
+# tests/lab/test_lab_cli.py.)
 REGISTRY_PROBE = """
 import json, sys
 heavy = sys.argv[1:]
 from hpgs_ns.selectors import registry
 names, default = registry.selector_names(), registry.DEFAULT_SELECTOR
 alone = sorted(m for m in heavy + ["tyro"] if m in sys.modules)
-from hpgs_lab.protocols import DEFAULT_SELECTORS, row_order
-row_order()
-print(json.dumps({"alone": alone, "with_lab": sorted(m for m in heavy if m in sys.modules), "names": names,
-                  "default": default, "bench": list(DEFAULT_SELECTORS), "builtin": list(registry.BUILTIN_SELECTORS)}))
+print(json.dumps({"alone": alone, "names": names, "default": default, "builtin": list(registry.BUILTIN_SELECTORS)}))
 """
 
 
 def test_the_selector_names_load_neither_torch_nor_nerfstudio():
-    """The registry is the one list of selector names: reading them, their order and the default (as `hpgs bench
-    --help` does, through the lab's defaults) imports no torch, nerfstudio or tyro; a config class is imported only
-    when it is asked for."""
+    """The registry is the one list of selector names: reading them, their order and the default imports no torch,
+    nerfstudio or tyro; a config class is imported only when it is asked for."""
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     proc = subprocess.run([sys.executable, "-c", REGISTRY_PROBE, *HEAVY], cwd=REPO, env=env, capture_output=True,
                           text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     found = json.loads(proc.stdout.strip().splitlines()[-1])
-    assert found["alone"] == [] and found["with_lab"] == [], found
-    assert found["bench"] == found["builtin"] == found["names"][:len(found["builtin"])]
+    assert found["alone"] == [], found
+    assert found["builtin"] == found["names"][:len(found["builtin"])]
     assert found["default"] in found["builtin"]

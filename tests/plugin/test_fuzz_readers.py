@@ -1,6 +1,7 @@
-"""Property-based tests of every reader (#44): a valid file truncated, with bytes flipped, or with a field given a
-value of another type, reads as a valid file or fails with the reader's one-line `UserError` naming the file:
-never another exception (a `struct.error`, `UnicodeDecodeError`, `KeyError`, ...).
+"""Property-based tests of every plugin reader (#44): a valid file truncated, with bytes flipped, or with a field
+given a value of another type, reads as a valid file or fails with the reader's one-line `UserError` naming the
+file: never another exception (a `struct.error`, `UnicodeDecodeError`, `KeyError`, ...). (The lab's readers, a
+suite TOML and a benchmark result: tests/lab/test_fuzz_lab_readers.py.)
 
 Examples are bounded and derandomized (the same examples every run, `derandomize=True`), so CI neither flakes nor
 takes long; `HPGS_FUZZ_EXAMPLES` scales every test's count for a longer local run.
@@ -208,55 +209,6 @@ def test_damaged_images_read_or_fail_in_one_line(pairs_csv):
     check()
 
 
-# ---- suite TOML -----------------------------------------------------------------------------------------------
-
-SUITE = """description = "fuzz"
-
-[[scene]]
-name = "ring"
-path = "synthetic:ring"
-dataparser = "mipnerf360"
-options = { downscale-factor = 2, eval-mode = "interval" }
-smoke = false
-
-[[scene]]
-name = "grid"
-path = "synthetic:grid"
-"""
-
-
-def test_suites_of_another_shape_or_damaged_read_or_fail_in_one_line(tmp_path):
-    from hpgs_lab.suites import SuiteError, load_suite, tomllib
-
-    path = tmp_path / "suite.toml"
-    spec = tomllib.loads(SUITE)
-
-    def as_toml(tree) -> bytes:
-        # a minimal TOML writer for the shapes `retyped` makes (JSON values are valid TOML inline values, bar null)
-        def value(v):
-            if v is None or (isinstance(v, float) and v != v):
-                return '"none"'
-            if isinstance(v, bool):
-                return "true" if v else "false"
-            if isinstance(v, dict):
-                return "{ " + ", ".join(f"{json.dumps(str(k))} = {value(x)}" for k, x in v.items()) + " }"
-            if isinstance(v, list):
-                return "[" + ", ".join(value(x) for x in v) + "]"
-            if isinstance(v, float) and v in (float("inf"), float("-inf")):
-                return "inf" if v > 0 else "-inf"
-            return json.dumps(v)
-
-        return "\n".join(f"{json.dumps(str(k))} = {value(v)}" for k, v in tree.items()).encode()
-
-    @fuzz(60)
-    @given(st.one_of(retyped(spec).map(as_toml), damaged(SUITE.encode())))
-    def check(data):
-        path.write_bytes(data)
-        reads_or_one_line(lambda: load_suite(str(path)), path, SuiteError)
-
-    check()
-
-
 # ---- a run's config.yml ---------------------------------------------------------------------------------------
 
 
@@ -276,7 +228,7 @@ def test_damaged_config_ymls_read_or_fail_in_one_line(tmp_path):
     check()
 
 
-# ---- selected_views.json, bench results -----------------------------------------------------------------------
+# ---- selected_views.json --------------------------------------------------------------------------------------
 
 ROUND_LOG = {"selector": "random", "seed": 0, "initial": ["images/0001.png"], "active": ["images/0001.png", "images/0002.png"],
              "withheld": ["images/0003.png"], "test": ["images/0000.png"],
@@ -294,25 +246,6 @@ def test_damaged_round_logs_read_or_fail_in_one_line(tmp_path):
     def check(data):
         path.write_bytes(data)
         reads_or_one_line(lambda: SelectionLog.read(path), path, RoundLogError)
-
-    check()
-
-
-def test_damaged_bench_results_read_or_fail_in_one_line(tmp_path):
-    from hpgs_lab.results import ResultError, RunResult
-
-    source = Path(__file__).resolve().parents[2] / "benchmarks" / "results" / "suite" / "juicebox" / "hpgs" / "farthest" / "seed3.json"
-    if not source.is_file():
-        pytest.skip(f"{source} not found")
-    result = RunResult.from_json(source).to_dict()
-    result["test_views"] = result["test_views"][:2]
-    path = tmp_path / "seed3.json"
-
-    @fuzz(60)
-    @given(json_variants(result))
-    def check(data):
-        path.write_bytes(data)
-        reads_or_one_line(lambda: RunResult.from_json(path), path, ResultError)
 
     check()
 

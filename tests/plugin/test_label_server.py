@@ -305,7 +305,7 @@ def test_burst_of_50_label_posts_is_all_written_once(tmp_path):
         server.shutdown()
         server.server_close()
     # each client's socket timeout (5 s) is the hang guard: a connection the backlog dropped, or an answer that
-    # never came, is its repr in `codes`; how fast the burst is served is benchmarks/label_server_latency.py's
+    # never came, is its repr in `codes`; how fast the burst is served is benchmarks/small_timings.py's (label_burst_50_s)
     assert codes == [200] * 50
     assert _labels(tmp_path / "pairs.csv") == [(i % 2, False) for i in range(50)]
     assert sorted(book.history) == list(range(50))  # each answer applied once

@@ -143,21 +143,18 @@ def test_training_culls_at_densification_steps_only_and_not_when_off(tiny_scene,
         assert calls == ([3, 6, 9] if on else [])
 
 
-def test_to_end_the_cull_goes_on_at_densifications_interval_after_densification_stops(tiny_scene, tmp_path, capsys):
-    for to_end in (False, True):
-        trainer = model_trainer(tiny_scene, tmp_path / str(to_end), near_cull_screen=0.15, near_cull_to_end=to_end)
-        model = trainer.pipeline.model
-        calls = []
-        model.cull_near_large = lambda calls=calls, model=model: calls.append(model.step) or 0
-        strategy = model.strategy
-        strategy.refine_start_iter, strategy.refine_every, strategy.refine_stop_iter = 2, 3, 7  # densify at 3, 6
-        train_steps(trainer, range(14))
-        assert calls == ([3, 6, 9, 12] if to_end else [3, 6])
-        signature = trainer.pipeline.datamanager.selection_signature["near-cull"]
-        assert signature == ("0.15 0.25 support 2 to end" if to_end else "0.15 0.25 support 2")
-        assert ("once densification stops, at its interval to the last step" in capsys.readouterr().out) == to_end
-    model_trainer(tiny_scene, tmp_path / "idle", near_cull_to_end=True)  # the capture's points: off by default
-    assert ("--pipeline.model.near-cull-to-end does nothing in this run: near-cull-screen is off by default for this "
+def test_the_cull_acts_at_densification_steps_and_stops_with_densification(tiny_scene, tmp_path, capsys):
+    trainer = model_trainer(tiny_scene, tmp_path / "on", near_cull_screen=0.15)
+    model = trainer.pipeline.model
+    calls = []
+    model.cull_near_large = lambda: calls.append(model.step) or 0
+    strategy = model.strategy
+    strategy.refine_start_iter, strategy.refine_every, strategy.refine_stop_iter = 2, 3, 7  # densify at 3, 6
+    train_steps(trainer, range(14))
+    assert calls == [3, 6]
+    assert trainer.pipeline.datamanager.selection_signature["near-cull"] == "0.15 0.25 support 2"
+    model_trainer(tiny_scene, tmp_path / "idle", near_cull_depth=0.3)  # the capture's points: off by default
+    assert ("--pipeline.model.near-cull-depth does nothing in this run: near-cull-screen is off by default for this "
             "start") in capsys.readouterr().out
 
 
@@ -228,11 +225,11 @@ def test_a_resume_across_the_guards_default_names_the_flags_that_give_the_checkp
     with pytest.raises(CheckpointError, match=r"near-cull: checkpoint off, now 0.15 0.25 support 2.*"
                                               r"--pipeline.model.near-cull-screen 0: the active start had no floater"):
         resume({k: v for k, v in now.items() if k != "near-cull"})
-    # the guard's first version (support 1), and one kept on to the end
+    # the guard's first version (support 1); one kept on to the end used an option 0.5 removed
     with pytest.raises(CheckpointError, match="near-cull-screen 0.15 --pipeline.model.near-cull-depth 0.25 "
                                               "--pipeline.model.near-cull-support 1\\)"):
         resume({**now, "near-cull": "0.15 0.25"})
-    with pytest.raises(CheckpointError, match="near-cull-support 2 --pipeline.model.near-cull-to-end True"):
+    with pytest.raises(CheckpointError, match="trained with --pipeline.model.near-cull-to-end True, which hpgs-ns 0.5"):
         resume({**now, "near-cull": "0.15 0.25 support 2 to end"})
     # and the other way: a guarded checkpoint resumed with the guard off
     with pytest.raises(CheckpointError, match=r"near-cull: checkpoint 0.15 0.25 support 2, now off"):

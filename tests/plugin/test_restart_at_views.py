@@ -8,6 +8,7 @@ does not restart (the next count is 12)."""
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import pytest
@@ -114,7 +115,7 @@ def test_restart_counts_must_be_positive():
     with pytest.raises(AfterAddError, match="restart-at-views 0 8"):
         AfterAddConfig(restart_at_views=(0, 8))
     config = AfterAddConfig(restart_at_views=(8, 16))
-    assert not config.enabled and config.describe() == "restart-at-views 8 16"
+    assert config.describe() == "restart-at-views 8 16"
     assert restarts_at((8, 16), 6, 8) and restarts_at((8, 16), 15, 17) and not restarts_at((8, 16), 8, 9)
     assert config.restart_counts(4, random_start=False) == (8, 16)
     auto = AfterAddConfig()
@@ -128,7 +129,7 @@ def test_restart_counts_must_be_positive():
     # a start from the capture's points restarts too by default (restart-seeded-starts), and only as such; 0.4's
     # trainer (never) is one flag away
     unseeded = AfterAddConfig(restart_seeded_starts=False)
-    assert unseeded.describe() == "restart-seeded-starts False" and not unseeded.enabled
+    assert unseeded.describe() == "restart-seeded-starts False"
     assert unseeded.restart_counts(4, random_start=False) == ()
     assert unseeded.restart_counts(4, random_start=True) == unseeded.restart_counts(4, False, True) == (8, 16)
     assert AfterAddConfig(restart_active_starts=False).restart_counts(4, False, True) == ()
@@ -136,16 +137,12 @@ def test_restart_counts_must_be_positive():
     assert auto.restart_counts(20, random_start=False, final_views=27) == ()  # HP-GS's 20 + 7: never
 
 
-def test_restart_at_last_add_counts_the_runs_final_views():
-    last = AfterAddConfig(restart_at_last_add=True, restart_seeded_starts=False)
-    assert not last.enabled
-    assert last.restart_counts(4, random_start=False, final_views=20) == (20,)  # FisherRF's protocol, seeded start
-    assert last.restart_counts(4, random_start=True, final_views=20) == (8, 16, 20)  # with a random start's own
-    assert last.restart_counts(20, random_start=True, final_views=27) == (27,)  # HP-GS's 20 + 7: 40 and 80 never come
-    assert last.restart_counts(4, random_start=False, final_views=4) == ()  # no round adds views
-    assert AfterAddConfig(restart_at_views=(8, 20), restart_at_last_add=True).restart_counts(4, False, final_views=20) == (8, 20)
-    assert AfterAddConfig(restart_at_last_add=True).restart_counts(4, False, final_views=20) == (8, 16, 20)  # seeded
+def test_restart_counts_end_with_the_runs_final_views():
     assert AfterAddConfig().restart_counts(4, random_start=True, final_views=12) == (8,)
+    assert AfterAddConfig().restart_counts(4, random_start=False, final_views=20) == (8, 16)  # seeded
+    assert AfterAddConfig(restart_seeded_starts=False).restart_counts(4, random_start=False, final_views=20) == ()
+    assert AfterAddConfig(restart_at_views=(8, 20)).restart_counts(4, False, final_views=20) == (8, 20)
+    assert AfterAddConfig().restart_counts(4, random_start=False, final_views=4) == ()  # no round adds views
 
 
 def seeded_run(tiny_scene, folder: Path, after_add: AfterAddConfig, capsys):
@@ -161,14 +158,13 @@ def seeded_run(tiny_scene, folder: Path, after_add: AfterAddConfig, capsys):
     return trainer, seen, [bool(r.get("reset")) for r in log["rounds"]], " ".join(capsys.readouterr().out.split())
 
 
-def test_a_seeded_run_restarts_only_at_its_last_add(tiny_scene, tmp_path, capsys):
-    after_add = AfterAddConfig(restart_at_last_add=True, restart_seeded_starts=False)
+def test_a_seeded_run_restarts_where_restart_at_views_says(tiny_scene, tmp_path, capsys):
+    after_add = AfterAddConfig(restart_at_views=(9,), restart_seeded_starts=False)
     trainer, seen, resets, out = seeded_run(tiny_scene, tmp_path / "last", after_add, capsys)
     signature = trainer.pipeline.datamanager.selection_signature
-    assert signature["after-add.restart-seeded-starts"] == "False" and signature["after-add"] == "restart-at-last-add True"
+    assert signature["after-add.restart-seeded-starts"] == "False" and signature["after-add"] == "restart-at-views 9"
     model = trainer.pipeline.model
-    assert "restart-at-last-add: the splat restarts at 9 views, the run's last add" in out
-    assert resets == [False, True]  # 3 -> 6: no; 6 -> 9, the last add: yes
+    assert resets == [False, True]  # 3 -> 6: no; 6 -> 9: yes
     assert seen[29]["model_step"] == 29 and seen[30]["model_step"] == 0 and seen[39]["model_step"] == 9
     assert seen[30]["num_points"] == model.initial_gaussians["means"].shape[0] == 1500  # back to the seed points
     assert model.clock_scale == pytest.approx(10 / 40)  # every schedule squeezed into the 10 steps left
@@ -208,10 +204,10 @@ def test_a_checkpoint_from_before_seeded_restarts_were_the_default_resumes_as_it
         resume(old, today)
     resume(old, {**today, "after-add.restart-seeded-starts": "False"})
     # 0.4's checkpoint that asked for it (then written inside after-add) resumes under today's default as it is
-    resume({**base, "after-add": "restart-seeded-starts True, refine-steps 10"},
-           {**today, "after-add": "refine-steps 10"})
-    with pytest.raises(CheckpointError, match="after-add: checkpoint refine-steps 10, now off"):
-        resume({**base, "after-add": "restart-seeded-starts True, refine-steps 10"}, today)
+    resume({**base, "after-add": "restart-seeded-starts True, restart-at-views 8"},
+           {**today, "after-add": "restart-at-views 8"})
+    with pytest.raises(CheckpointError, match="after-add: checkpoint restart-at-views 8, now off"):
+        resume({**base, "after-add": "restart-seeded-starts True, restart-at-views 8"}, today)
     # a random start has no such key, then or now: an old checkpoint of one resumes unchanged
     random_now = {**base, "seed-points": "colmap", "after-add": "off"}
     resume({**base, "after-add": "off"}, random_now)
@@ -228,3 +224,19 @@ def test_a_checkpoint_of_the_old_default_selector_names_the_flag_that_resumes_it
     with pytest.raises(CheckpointError, match=r"\(--pipeline.selection.selector fisher\)"):
         resume({**base, "selector": "fisher"}, {**base, "selector": "farthest"})
     resume({**base, "selector": "hpgs"}, {**base, "selector": "hpgs"})
+
+
+@pytest.mark.parametrize("saved, flag", [
+    ({"after-add": "refine-steps 1000"}, "--pipeline.selection.after-add.refine-steps 1000"),
+    ({"after-add": "restart-at-views 8, error-points 500"}, "--pipeline.selection.after-add.error-points 500"),
+    ({"late-view-boost": "3"}, "--pipeline.datamanager.late-view-boost 3"),
+    ({"sh-degree-by-age": "True"}, "--pipeline.model.sh-degree-by-age True"),
+    ({"near-cull": "0.15 0.25 support 2 to end"}, "--pipeline.model.near-cull-to-end True"),
+])
+def test_a_checkpoint_trained_with_a_removed_option_is_refused_naming_it_and_the_version(saved, flag):
+    from hpgs_ns.trainer import CheckpointError
+
+    base = {"selector": "random", "seed": "0", "seed-points": "colmap", "after-add": "off"}
+    with pytest.raises(CheckpointError, match=rf"trained with {re.escape(flag)}, which hpgs-ns 0.5 removed; resume it "
+                                              r"with hpgs-ns 0.4, the version that wrote it"):
+        resume({**base, **saved}, base)

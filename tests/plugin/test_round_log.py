@@ -11,7 +11,7 @@ from hpgs_ns.selection.after_add import AfterAddConfig
 from hpgs_ns.selection.log import SelectionLog
 
 
-@pytest.mark.parametrize("what", ["reset-after-add", "after-add lr-restart"])
+@pytest.mark.parametrize("what", ["reset-after-add", "after-add restart-at-views"])
 def test_selected_views_json_is_written_once_per_round(tiny_scene, tmp_path, monkeypatch, what):
     writes = []
     original = SelectionLog.write
@@ -23,8 +23,8 @@ def test_selected_views_json_is_written_once_per_round(tiny_scene, tmp_path, mon
     monkeypatch.setattr(SelectionLog, "write", counted)
     cfg = short_config(tiny_scene, tmp_path, steps=40, every=15, rounds=2, selector="random",
                        reset_after_add=what == "reset-after-add")
-    if what != "reset-after-add":
-        cfg.pipeline.selection.after_add = AfterAddConfig(lr_restart=True)
+    if what != "reset-after-add":  # a restart at the first round's 7 views only
+        cfg.pipeline.selection.after_add = AfterAddConfig(restart_at_views=(7,))
     trainer = run_training(cfg)
     # at the first step, once per round (15, 30), at the end: never a half-done round
     assert [n for n, _ in writes] == [0, 1, 2, 2]
@@ -32,7 +32,7 @@ def test_selected_views_json_is_written_once_per_round(tiny_scene, tmp_path, mon
     if what == "reset-after-add":
         assert first["reset"] and first["num_gaussians_after_reset"] > 0 and "after_add" not in first
     else:
-        assert first["after_add"] == {"lr_restart_span": 25.0} and second["after_add"] == {"lr_restart_span": 10.0}
+        assert first["reset"] and first["num_gaussians_after_reset"] > 0 and not second.get("reset")
     log = SelectionLog.read(Path(trainer.base_dir))
     assert [r.to_dict() for r in log.rounds] == [first, second]
     assert log.version == 2 and len(log.active) == 8 and log.chosen == [r["chosen"][0] for r in (first, second)]

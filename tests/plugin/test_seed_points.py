@@ -272,20 +272,3 @@ def test_without_pycolmap_a_run_that_triangulates_stops_before_training_in_one_l
     with pytest.raises(triangulate.PycolmapMissingError, match="triangulation needs pycolmap"):
         triangulate.triangulate_views(trainer.pipeline.datamanager.photo_cameras,
                                       trainer.pipeline.datamanager.train_dataset.image_filenames, [0, 1])
-
-
-def test_an_active_restart_from_the_splat_keeps_its_gaussians_and_adds_the_rounds_triangulation(juicebox, tmp_path, spy):
-    from hpgs_ns.selection.after_add import AfterAddConfig
-
-    cfg = juicebox_config(juicebox, tmp_path / "run", steps=3, select_at=(1,), rounds=1, initial=8, views_per_round=4,
-                          selector="random", seed_points="active")
-    cfg.pipeline.selection.after_add = AfterAddConfig(restart_at_views=(12,), restart_from="splat")
-    trainer = setup_trainer(cfg)
-    dm, model = trainer.pipeline.datamanager, trainer.pipeline.model
-    trainer.train()
-    record = dm.history[0]
-    kept, added = int(record.after_add["splat_points_restart"]), int(record.after_add["seed_points_added"])
-    assert record.reset and len(dm.active) == 12 and "seed_points_restart" not in record.after_add  # not re-triangulated
-    assert 0 < kept and record.num_gaussians_after_reset == kept
-    # the restart's points are the state resets return to; the round's triangulated points away from them joined after
-    assert model.initial_gaussians["means"].shape[0] == kept and model.num_points == kept + added

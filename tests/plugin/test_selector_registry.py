@@ -18,44 +18,6 @@ from conftest import REPO, run_training, short_config
 from hpgs_ns.selectors import SelectionError
 from hpgs_ns.selectors.registry import BUILTIN_SELECTORS, selector_class, selector_config, selector_names
 
-TOY = textwrap.dedent('''
-    """A third-party selector: always the candidate with the highest index."""
-    from dataclasses import dataclass, field
-    from typing import Type
-
-    from hpgs_ns.selectors.base import Selection, SelectorConfig
-
-
-    class LastSelector:
-        def __init__(self, config):
-            self.config = config
-
-        def select(self, context):
-            picked = sorted(context.candidates)[-context.num_to_pick:]
-            return Selection(indices=picked, scores={c: float(c) for c in context.candidates})
-
-
-    @dataclass
-    class LastSelectorConfig(SelectorConfig):
-        """Always the candidates with the highest index."""
-
-        _target: Type = field(default_factory=lambda: LastSelector)
-        keep_last: int = 1
-        """An option of a third-party selector (unused by its choice)."""
-''')
-
-
-@pytest.fixture
-def toy_plugin(tmp_path, monkeypatch) -> Path:
-    """An installed package `toy_selector` whose entry point registers the selector `last`."""
-    (tmp_path / "toy_selector.py").write_text(TOY)
-    info = tmp_path / "toy_selector-0.1.dist-info"
-    info.mkdir()
-    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: toy-selector\nVersion: 0.1\n")
-    (info / "entry_points.txt").write_text("[hpgs_ns.selectors]\nlast = toy_selector:LastSelectorConfig\n")
-    monkeypatch.syspath_prepend(str(tmp_path))
-    return tmp_path
-
 
 def parse_pipeline(args):
     """`ns-train hpgs`'s pipeline options as tyro reads them (in-process)."""
@@ -82,21 +44,14 @@ def test_the_readme_lists_every_builtin_selector():
     assert sorted(re.findall(r"^\| `([\w-]+)` \|", table, re.M)) == sorted(BUILTIN_SELECTORS)
 
 
-def test_a_plugin_selector_reaches_the_bench_rows_the_candidate_log_and_provenance(toy_plugin):
-    from hpgs_lab.protocols import row_order
-    from hpgs_lab.provenance import code_hash
+def test_a_plugin_selector_reaches_the_candidate_log(toy_plugin):
     from hpgs_ns.selection.candidate_log import logged_selectors
 
-    assert row_order().index("last") == len(BUILTIN_SELECTORS)  # after the built-in ones, before the references
     # every selector whose config says its scores say something, the plugin's too (by SelectorConfig's default);
     # random's scores are all equal, blend is a mix
     logged = logged_selectors()
     assert logged == [name for name in selector_names() if selector_class(name).logged_in_candidate_log]
     assert logged[-1] == "last" and not {"random", "blend"} & set(logged)
-    before = code_hash("last")
-    assert before != code_hash(None)
-    (toy_plugin / "toy_selector.py").write_text(TOY + "\nCHANGED = 1  # a change to the plugin's module\n")
-    assert code_hash("last") != before  # the plugin's own file moves its runs' code hash
 
 
 def test_unknown_selector_is_a_one_line_error():

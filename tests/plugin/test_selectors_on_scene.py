@@ -199,7 +199,7 @@ def test_blend_scores_are_farthest_and_hpgs_scores_combined_through_ns_train_opt
 
 
 def test_presets_pick_the_unseen_side_and_rank_only_their_shortlist(one_sided):
-    from hpgs_ns.selectors.presets import CoverageFisherSelectorConfig, FarthestDoptSelectorConfig, FisherDoptSelectorConfig
+    from hpgs_ns.selectors.presets import FarthestDoptSelectorConfig, FisherDoptSelectorConfig
 
     trainer, az = one_sided
     light = dict(probes=4, train_probe_factor=2, view_batch=8)
@@ -210,8 +210,16 @@ def test_presets_pick_the_unseen_side_and_rank_only_their_shortlist(one_sided):
     assert all(0 < s for s in selection.scores.values()) and sum(selection.scores.values()) < sum(trace.values())
     dm = trainer.pipeline.datamanager
     pool = len(dm.candidates)
+    # coverage shortlisting for fisher: the shortlist option, as a preset would set it
+    from types import SimpleNamespace
+
+    from hpgs_ns.selectors.coverage import CoverageSelectorConfig
+    from hpgs_ns.selectors.shortlist import ShortlistSelector
+
+    coverage_fisher = SimpleNamespace(setup=lambda: ShortlistSelector(CoverageSelectorConfig().setup(),
+                                                                      FisherSelectorConfig(**light).setup(), 0.2, "coverage"))
     for name, preset in (("farthest-dopt", FarthestDoptSelectorConfig(then=FisherSelectorConfig(criterion="dopt", **light))),
-                         ("coverage-fisher", CoverageFisherSelectorConfig(then=FisherSelectorConfig(**light)))):
+                         ("coverage-fisher", coverage_fisher)):
         names, selection = pick(trainer, preset, name)
         assert_unseen_side(names, az)
         kept = math.ceil(0.2 * pool)

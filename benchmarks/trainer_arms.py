@@ -1,14 +1,15 @@
-"""Trainer pilots of issue #46 (docs/lab/late-view-boost-plan.md, restart-colmap-plan.md), read from their runs.
+"""A trainer setting's arms against the trainer's defaults (`off`), read from their runs: a trainer pilot's table.
 
 Reads `ROOT/<start>/<arm>/<scene>/fisherrf/<selector>/[final-set/]seed<k>.json` (start: `auto` or `active`; arm:
-`off`, the trainer's defaults, or a mechanism such as `b3`, `--pipeline.datamanager.late-view-boost 3`). Prints,
+`off`, the trainer's defaults, or one setting, e.g. `w0.05` for `--pipeline.model.depth-loss.weight 0.05`). Prints,
 per start and arm: the gain arm - off of the runs, paired by (scene, selector, seed), with its 95%
 hierarchical-bootstrap interval (over scenes, `hpgs_lab.stats`) and sign-flip p (over the pairs' scene means); each
 arm's schedule cost (final-set - run, same seed) per selector; arm - off on `random`'s final-sets (views that do not
 depend on training: repeat noise, or what the mechanism does to a run without adds); run time; and the plans'
-decision rule (gain >= +0.2 dB, p < 0.1, lower schedule cost for every selector). Writes it all as JSON.
+earlier plans' decision rule (gain >= +0.2 dB, p < 0.1, lower schedule cost for every selector). Writes it all as
+JSON.
 
-    python benchmarks/late_view_boost.py [--root benchmarks/results/tune-boost] [--baseline off] [--out ROOT/summary.json]
+    python benchmarks/trainer_arms.py [--root benchmarks/results/tune-boost] [--baseline off] [--out ROOT/summary.json]
 """
 
 from __future__ import annotations
