@@ -53,7 +53,7 @@ class ActiveDatamanagerConfig(FullImageDatamanagerConfig):
     view, then farthest camera centres (FisherRF's start); or uniformly at random (seeded)."""
     exclude_views: Tuple[str, ...] = ()
     """Training views left out of the run entirely, never active and never candidates: a capture that lacks them
-    (`benchmarks/suggest_check.py` withholds arcs of a capture this way)."""
+    (e.g. an arc of the capture held back, to check what `hpgs suggest` says of it)."""
     initial_view_names: Tuple[str, ...] = ()
     """Explicit initial views by name (image path relative to the data root, e.g. `images/0001.png`, or just the
     file name where that is unambiguous); overrides initial-views."""

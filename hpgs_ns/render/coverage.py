@@ -11,8 +11,8 @@ rasterizer call shared:
   on CUDA from `rasterize_to_indices_in_range`'s (Gaussian, pixel) list, on the CPU by walking the twin's tiles.
 - `render_values`: the image of one scalar per pair, composited front to back over a constant background.
 
-Eval-mode, no gradients. tests/plugin/test_coverage.py checks the CPU path against explicit per-pixel compositing and
-the CUDA path against the CPU one.
+Eval-mode, no gradients. The CPU path is tested against explicit per-pixel compositing, the CUDA path against the
+CPU one.
 """
 
 from __future__ import annotations

@@ -3,7 +3,7 @@
 The rasterizer's settings, the activations of splatfacto's raw parameters and the background/clamp rule, as
 nerfstudio 1.1.5's `SplatfactoModel.get_outputs` has them. `HpgsSplatfactoModel._rasterize_cameras` (training,
 eval and selection renders) and `pair_render` (FisherRF's per-pair renders) both read them from here;
-tests/test_render_matches_splatfacto.py pins the model's renders to stock splatfacto's.
+a CPU test pins the model's renders to stock splatfacto's.
 """
 
 from __future__ import annotations

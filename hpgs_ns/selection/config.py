@@ -58,8 +58,8 @@ class SelectionLoopConfig(InstantiateConfig):
     """Stop selecting once the next view's predicted test-PSNR gain (dB) is below this (`hpgs_ns.selection.early_stop`;
     default: every round runs): views a scene does not need are not added."""
     gain_model: Optional[Path] = None
-    """The gain calibration for stop-when-gain-below (`benchmarks/early_stop.py --write-model`; default:
-    hpgs_ns/assets/gain-model.json, fitted on the suite's FisherRF-protocol runs)."""
+    """The gain calibration for stop-when-gain-below (a JSON gain model; default: the shipped
+    hpgs_ns/assets/gain-model.json, fitted on benchmark runs of the FisherRF protocol)."""
     log_candidate_scores: bool = False
     """After each round, log every registered selector's score of every candidate and each candidate's render error
     against its withheld photo to candidate_scores.jsonl (analysis only: never read by the run, and its random
