@@ -98,7 +98,7 @@ class Metrics:
 class ViewMetrics:
     """One test view's metrics at the end of training; the render's depth over its opaque pixels (10th percentile,
     median; `hpgs_ns.trainer.view_depths`) and what lies in front of its camera (`front_*`,
-    `hpgs_ns.model.HpgsSplatfactoModel.describe_front`) where the run recorded them."""
+    `hpgs_ns.render.front.describe_front`) where the run recorded them."""
 
     name: str
     psnr: float
@@ -215,7 +215,7 @@ class RunResult:
     num_gaussians: Optional[int] = None
     """The splat's size at the end (None in files written before it)."""
     near_culled: Optional[int] = None
-    """Gaussians `--pipeline.model.near-cull-screen` removed over the run (None: the option was off)."""
+    """Gaussians the floater guard (`--pipeline.model.near-cull.*`) removed over the run (None: it was off)."""
     seed_points: Optional[str] = None
     """What the splat started from (`start_label`: the `--pipeline.datamanager.seed-points` mode as resolved, `auto`
     being colmap or active, or `random` where it gave no points); None in files written before it (see `start`)."""
@@ -346,7 +346,7 @@ def start_label(mode: Optional[str], random_start: bool) -> Optional[str]:
 
 
 # Fields whose type the report relies on (bool is an int: a seed of `true` is refused by the check on str too).
-# Fields written only where set: only final-set references have a source run, only near-cull-screen runs a count.
+# Fields written only where set: only final-set references have a source run, only runs with the floater guard on a count.
 WRITTEN_WHEN_SET = ("final_set_of", "near_culled")
 
 RESULT_TYPES = {"scene": str, "protocol": str, "selector": str, "seed": int, "test": Mapping, "timing": Mapping,

@@ -123,8 +123,30 @@ def seeded_restarts_key(saved: Dict[str, str], now: Dict[str, str]) -> Dict[str,
 def near_cull_flags(saved: Optional[str]) -> str:
     """The near-cull options that give a checkpoint's "near-cull" signature back (`None`: it had none)."""
     if saved is None:
-        return "--pipeline.model.near-cull-screen 0: the active start had no floater guard before 0.4"
+        return "--pipeline.model.near-cull.screen 0: the active start had no floater guard before 0.4"
     words = saved.split()
-    flags = f"--pipeline.model.near-cull-screen {words[0]} --pipeline.model.near-cull-depth {words[1]}"
-    flags += f" --pipeline.model.near-cull-support {words[words.index('support') + 1] if 'support' in words else 1}"
+    flags = f"--pipeline.model.near-cull.screen {words[0]} --pipeline.model.near-cull.depth {words[1]}"
+    flags += f" --pipeline.model.near-cull.support {words[words.index('support') + 1] if 'support' in words else 1}"
     return flags
+
+
+# The floater guard's options before it was a strategy (0.4): model config field -> the `near-cull` group's field.
+NEAR_CULL_FIELDS: Dict[str, str] = {"near_cull_screen": "screen", "near_cull_depth": "depth", "near_cull_support": "support"}
+
+
+def read_model_state(config: Any) -> None:
+    """A model config.yml of 0.4 kept the floater guard's options as `near_cull_*` fields: into the `near_cull`
+    group (`ns-eval`, `ns-viewer`, `--load-config` read it as it trained)."""
+    state = config.__dict__
+    old = {new: state.pop(name) for name, new in NEAR_CULL_FIELDS.items() if name in state}
+    if old:
+        from hpgs_ns.strategies.near_cull import NearCullConfig
+
+        config.near_cull = NearCullConfig(**old)
+
+
+def strategy_states(extra_state: Dict[str, Any]) -> Dict[str, Dict[str, Any]]:
+    """{strategy name: its saved state} from a model checkpoint's extra state; 0.4 saved the guard's count alone."""
+    if "strategies" in extra_state:
+        return dict(extra_state["strategies"])
+    return {"near-cull": {"culled": int(extra_state.get("near_culled", 0))}}

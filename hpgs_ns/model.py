@@ -36,8 +36,8 @@ from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.models import splatfacto
 from nerfstudio.models.splatfacto import SplatfactoModel, SplatfactoModelConfig
 
-from hpgs_ns.errors import UserError, check_option
-from hpgs_ns.render.footprints import FRONT_DEPTH, FRONT_SCREEN, PinholeViews, in_front, near_and_large, reach_any_image, surface_support
+from hpgs_ns import compat
+from hpgs_ns.errors import UserError
 from hpgs_ns.render.pair_render import Splat
 from hpgs_ns.render.rasterize import composite, rasterize_splat
 from hpgs_ns.render.viewmats import world_to_camera
@@ -101,38 +101,11 @@ class HpgsSplatfactoModelOptions(SplatfactoModelConfig):
     rasterizer: Literal["auto", "gsplat", "cpu"] = "auto"
     """Which rasterizer renders the splat: gsplat's CUDA kernels, the pure-PyTorch CPU twin, or auto (gsplat when
     CUDA is available)."""
-    near_cull_screen: Optional[float] = None
-    """At each densification step, also remove the Gaussians that, seen from any camera of the training split, the
-    candidates' included (their poses, never their photos), lie nearer than near-cull-depth x that camera's median
-    depth and cover more than this fraction of its larger image side (splatfacto's cull-screen-size measure, 0.15),
-    unless active training views render them on their surface (a wall beside a candidate camera that the training
-    views see stays). Such Gaussians float in front of cameras no training view looks through, where gsplat's own
-    screen-size cull, which sees only the training view, cannot find them. None (the default): 0.15 for a splat that
-    starts from the active views' points (`seed-points active`, or `auto` on a capture without a point cloud), where
-    those floaters grow; off for the other starts, where it was not judged. 0: off for every start."""
-    near_cull_depth: float = 0.25
-    """near-cull-screen's depth bound, as a fraction of each camera's median depth of the Gaussians in its image."""
-    near_cull_support: int = 2
-    """How many active training views must render a near-cull-screen suspect on their surface for it to stay. 2: a
-    suspect only one view renders there goes too: a real surface beside a camera is rendered by every training view
-    that sees it, a Gaussian that reproduces one view's pixels from the wrong depth by that view alone. 1: one is
-    enough (the guard's first version)."""
-    def __post_init__(self) -> None:
-        parent = getattr(super(), "__post_init__", None)
-        if parent is not None:
-            parent()
-        flag = "--pipeline.model."
-        check_option(flag + "near-cull-screen", self.near_cull_screen,
-                     self.near_cull_screen is None or 0 <= self.near_cull_screen < 1,
-                     "must be at least 0 and below 1 (a fraction of the image's larger side)", "0 turns it off")
-        check_option(flag + "near-cull-depth", self.near_cull_depth, 0 < self.near_cull_depth <= 1,
-                     "must be above 0 and at most 1 (a fraction of each camera's median depth)")
-        check_option(flag + "near-cull-support", self.near_cull_support, self.near_cull_support >= 1,
-                     "must be at least 1 (training views)", "pass 1 (one view is enough) or 2")
 
     def __setstate__(self, state: dict) -> None:
         # A config.yml saved before an option group existed (PyYAML restores attributes, not __init__): its defaults.
         self.__dict__.update(state)
+        compat.read_model_state(self)
         for f in fields(self):
             if f.name not in self.__dict__ and f.default_factory is not MISSING:
                 setattr(self, f.name, f.default_factory())
@@ -153,19 +126,6 @@ HpgsSplatfactoModelConfig = make_dataclass(
     bases=(HpgsSplatfactoModelOptions,),
     namespace={"__module__": __name__, "__doc__": "Splatfacto with a selectable rasterizer, runnable on CPU or GPU."},
 )
-
-
-ACTIVE_START_NEAR_CULL = 0.15
-"""near-cull-screen where it is left unset and the splat starts from the active views' points (judged for that start
-only, with near-cull-support 2)."""
-
-
-def near_cull_screen_for(config: HpgsSplatfactoModelConfig, seed_points: str) -> float:
-    """near-cull-screen as a run uses it: the option where set, else by the start (`seed_points`, the datamanager's
-    resolved mode)."""
-    if config.near_cull_screen is not None:
-        return float(config.near_cull_screen)
-    return ACTIVE_START_NEAR_CULL if seed_points == "active" else 0.0
 
 
 class HpgsSplatfactoModel(SplatfactoModel):
@@ -198,9 +158,11 @@ class HpgsSplatfactoModel(SplatfactoModel):
         with _offline_lpips_in_splatfacto():
             super().populate_modules()
         self.seed_points = seed_points
-        self.trainer_strategies: List[Strategy] = [options.setup() for options in self.config.strategy_configs().values()
-                                                   if options.active()]
-        """The trainer strategies this run uses (`hpgs_ns.strategies`; those off, e.g. weight 0, are not built)."""
+        self.strategies_by_name: Dict[str, Strategy] = {name: options.setup() for name, options
+                                                        in self.config.strategy_configs().items() if options.active()}
+        """The trainer strategies this run uses, by registered name (`hpgs_ns.strategies`; those off, e.g. weight 0,
+        are not built)."""
+        self.trainer_strategies: List[Strategy] = list(self.strategies_by_name.values())
         if colours is not None:
             dc = self.gauss_params["features_dc"]
             if self.config.sh_degree > 0:
@@ -425,8 +387,6 @@ class HpgsSplatfactoModel(SplatfactoModel):
         return loss_dict
 
     def step_post_backward(self, step: int) -> None:
-        for strategy in getattr(self, "trainer_strategies", []):
-            strategy.post_backward(self, step)
         if self.step_offset and getattr(self.strategy, "verbose", False):
             # gsplat prints "Step N: ..." on the model's clock, which a restart sets back to 0: name both clocks
             with contextlib.redirect_stdout(io.StringIO()) as said:
@@ -436,131 +396,13 @@ class HpgsSplatfactoModel(SplatfactoModel):
                                                          f"{self.step_offset}):", line))
         else:
             super().step_post_backward(step - self.step_offset)
-        if self.near_cull_screen > 0 and self.is_near_cull_step():
-            self.cull_near_large()
-
-    # ---- Gaussians in front of cameras no training view looks through (near-cull-screen) ------------------------
-
-    near_cull_screen: float = 0.0
-    """near-cull-screen as this run uses it (`near_cull_screen_for`: the pipeline sets it from the option and the
-    start); 0: off."""
-    near_cull_views: Optional[PinholeViews] = None
-    """The cameras near-cull-screen looks from: the training split's, active and candidate (the pipeline sets them)."""
-    near_cull_training: Optional[Callable[[], Cameras]] = None
-    """The active training views' cameras now (the pipeline sets it): what near-cull-screen checks surfaces in."""
-    near_cull_render_short_side: int = 160
-    """The size (short side, pixels) the training views are rendered at for that check."""
-    near_culled: int = 0
-    """How many Gaussians near-cull-screen has removed in this run so far."""
+        for strategy in getattr(self, "trainer_strategies", []):
+            strategy.post_backward(self, step)
 
     def is_refine_step(self) -> bool:
         """Whether gsplat's densification ran at this model step (its own test, on this model's clock)."""
         strategy, step = self.strategy, self.step
         return (strategy.refine_start_iter < step < strategy.refine_stop_iter and step % strategy.refine_every == 0)
-
-    def is_near_cull_step(self) -> bool:
-        """Whether near-cull-screen acts at this model step: at densification's steps."""
-        return self.is_refine_step()
-
-    @torch.no_grad()
-    def training_surfaces(self, cameras: Optional[Cameras] = None) -> Tuple[PinholeViews, List[torch.Tensor], List[torch.Tensor]]:
-        """The active training views (or `cameras`) rendered (eval mode, short side at most
-        `near_cull_render_short_side`): their cameras at that size, expected depths and opacities ([H, W] each)."""
-        cameras = self.small(self.near_cull_training() if cameras is None else cameras)
-        depths, alphas = [], []
-        for k in range(cameras.shape[0]):
-            _, render, alpha = self._eval_render(cameras[k : k + 1], "RGB+ED")
-            depths.append(render[0, ..., 3])
-            alphas.append(alpha[0, ..., 0])
-        return PinholeViews.from_cameras(cameras, self.means.device), depths, alphas
-
-    def small(self, cameras: Cameras) -> Cameras:
-        """A copy of `cameras` with the short side at most `near_cull_render_short_side` (never enlarged)."""
-        cameras = copy.deepcopy(cameras)
-        short = torch.minimum(cameras.width, cameras.height).float()
-        cameras.rescale_output_resolution(torch.clamp(self.near_cull_render_short_side / short, max=1.0))
-        return cameras
-
-    @torch.no_grad()
-    def cull_near_large(self) -> int:
-        """near-cull-screen, now: remove the Gaussians `render.footprints.near_and_large` finds from `near_cull_views`
-        that fewer than near-cull-support active training views show on their rendered surface (`surface_support`: a
-        wall beside a candidate camera, which the training views see, stays; a Gaussian hanging in space they see
-        through, or that none of them sees, goes). gsplat's `remove` keeps the optimizers' and the strategy's rows in
-        step. Returns how many."""
-        from gsplat.strategy.ops import remove  # pure PyTorch: safe on a CPU machine
-
-        if self.near_cull_views is None or self.num_points == 0:
-            return 0
-        means = self.means.detach()
-        mask = near_and_large(means, torch.exp(self.scales.detach()), self.near_cull_views,
-                              self.near_cull_screen, self.config.near_cull_depth)
-        if bool(mask.any()) and self.near_cull_training is not None:
-            views, depths, alphas = self.training_surfaces()
-            picked = mask.nonzero().squeeze(1)
-            mask[picked] = surface_support(means[picked], views, depths, alphas) < self.config.near_cull_support
-        count = int(mask.sum())
-        if count == 0 or count >= self.num_points:  # never the whole splat
-            return 0
-        remove(params=self.gauss_params, optimizers=self.optimizers, state=self.strategy_state, mask=mask)
-        self.near_culled += count
-        from nerfstudio.utils import writer
-
-        writer.put_scalar("train/near_culled", count, self.step + self.step_offset)
-        return count
-
-    @torch.no_grad()
-    def describe_front(self, cameras: Cameras, training: Cameras, split: Optional[Cameras] = None) -> List[Dict[str, Any]]:
-        """For each camera of `cameras` (the test views), what lies in front of it (`render.footprints.in_front`):
-        `front_gaussians`, `front_cover` (the mean opacity they alone render over its image: the haze they lay on
-        it), `front_large` (of those, wide in its image), the large ones' median and largest sigma (largest axis,
-        the splat's units: what a 3D-scale prune compares), the shares of them that one, and two or more, views
-        of `training` render on their surface (`surface_support`), that reach into a `training` view's image
-        (`front_large_in_view`: a view that can pull on them) and, given `split` (the training split's cameras,
-        candidates included), that the floater guard's test flags from one of those cameras at its default bounds
-        (`front_large_suspect`: what near-cull-screen 0.15 could reach, before its surface check); {} for an empty
-        splat. Read by the lab beside each view's PSNR: what a collapsed view has in front of it."""
-        if self.num_points == 0:
-            return [{} for _ in range(cameras.shape[0])]
-        device = self.means.device
-        views = PinholeViews.from_cameras(cameras, device)
-        means, scales = self.means.detach(), torch.exp(self.scales.detach())
-        out: List[Dict[str, Any]] = []
-        surfaces = seen = suspects = None
-        for k in range(len(views)):
-            front, large = in_front(means, scales, views, k)
-            entry: Dict[str, Any] = {"front_gaussians": int(front.sum()), "front_large": int(large.sum()),
-                                     "front_cover": self.cover(cameras[k : k + 1], front) if bool(front.any()) else 0.0}
-            if entry["front_large"]:
-                sigma = scales[large].max(dim=-1).values
-                if surfaces is None:
-                    surfaces = self.training_surfaces(training)
-                support = surface_support(means[large], *surfaces)
-                if seen is None:  # computed once, for every Gaussian: the guard's depth bound is each camera's median
-                    seen = reach_any_image(means, scales, PinholeViews.from_cameras(training, device))
-                    if split is not None:
-                        suspects = near_and_large(means, scales, PinholeViews.from_cameras(split, device),
-                                                  FRONT_SCREEN, FRONT_DEPTH)
-                entry.update(front_large_sigma_median=float(sigma.median()), front_large_sigma_max=float(sigma.max()),
-                             front_large_on_surface=float((support >= 1).float().mean()),
-                             front_large_on_two_surfaces=float((support >= 2).float().mean()),
-                             front_large_in_view=float(seen[large].float().mean()))
-                if suspects is not None:
-                    entry["front_large_suspect"] = float(suspects[large].float().mean())
-            out.append(entry)
-        return out
-
-    @torch.no_grad()
-    def cover(self, camera: Cameras, gaussians: torch.Tensor) -> float:
-        """The mean opacity the Gaussians `gaussians` ([N] bool) alone render over `camera`'s ([1]) image, rendered
-        at `near_cull_render_short_side` px on its short side."""
-        camera = self.small(camera).to(self.device)
-        with self.eval_mode():
-            _, alpha, _ = self._rasterize_cameras(camera.camera_to_worlds.reshape(-1, 3, 4),
-                                                  camera.get_intrinsics_matrices().reshape(-1, 3, 3),
-                                                  int(camera.width[0].item()), int(camera.height[0].item()),
-                                                  crop_ids=gaussians.to(self.device))
-        return float(alpha.mean())
 
     @torch.no_grad()
     def reset_to_initial(self, step: int, optimizers: Dict[str, torch.optim.Optimizer]) -> None:
@@ -587,7 +429,8 @@ class HpgsSplatfactoModel(SplatfactoModel):
         # Plain ints and tensors only, so checkpoints load with torch.load(weights_only=True).
         state: Dict[str, Any] = {"step_offset": int(self.step_offset), "clock_scale": float(self.clock_scale),
                                  # how the splat started: a resume does not rebuild the start (seed-points active)
-                                 "random_start": bool(self.random_start), "near_culled": int(self.near_culled)}
+                                 "random_start": bool(self.random_start),
+                                 "strategies": {name: s.state() for name, s in getattr(self, "strategies_by_name", {}).items()}}
         if self.keep_initial_in_checkpoint:
             state["initial_gaussians"] = dict(self.initial_gaussians)
         # The densification strategy's running statistics (gradient sums, visibility counts since the last
@@ -597,7 +440,9 @@ class HpgsSplatfactoModel(SplatfactoModel):
 
     def set_extra_state(self, state: Dict[str, Any]) -> None:
         self.step_offset = int(state.get("step_offset", 0))
-        self.near_culled = int(state.get("near_culled", 0))
+        for name, saved in compat.strategy_states(state).items():
+            if name in getattr(self, "strategies_by_name", {}):
+                self.strategies_by_name[name].load_state(saved)
         if "random_start" in state:
             self.random_start = bool(state["random_start"])
         if float(state.get("clock_scale", 1.0)) != 1.0:

@@ -18,7 +18,7 @@ so in one line, and stops with one line when there are none.
 from __future__ import annotations
 
 import sys
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import List, Optional, Type
 
@@ -28,11 +28,10 @@ from nerfstudio.utils.rich_utils import CONSOLE
 
 from hpgs_ns import compat
 from hpgs_ns.errors import UserError
-from hpgs_ns.model import near_cull_screen_for
-from hpgs_ns.render.footprints import PinholeViews
 from hpgs_ns.selection.config import SelectionConfig
 from hpgs_ns.selection.rounds import SelectionRounds
 from hpgs_ns.selection.snapshots import Snapshots
+from hpgs_ns.strategies.base import RunStart
 from hpgs_ns.viewer import SelectionView
 
 
@@ -114,35 +113,13 @@ class HpgsPipeline(VanillaPipeline):
         elif not getattr(self.model, "random_start", True):
             # a start from the capture's points: whether it restarts (a default that changed: before, it never did)
             signature["after-add.restart-seeded-starts"] = str(bool(selection.after_add.restart_seeded_starts))
-        has_near_cull = hasattr(config.model, "near_cull_screen")  # an hpgs model (the guard is its option)
-        near_cull = near_cull_screen_for(config.model, signature["seed-points"]) if has_near_cull else 0.0
-        self.model.near_cull_screen = near_cull
-        if near_cull > 0:  # which Gaussians densification keeps
-            support = int(config.model.near_cull_support)
-            # support 1 (the first version's rule) keeps the signature checkpoints of that version carry
-            signature["near-cull"] = (f"{near_cull:g} {float(config.model.near_cull_depth):g}"
-                                      + (f" support {support}" if support != 1 else ""))
-            if training:
-                dm = self.datamanager
-                self.model.near_cull_views = PinholeViews.from_cameras(dm.train_dataset.cameras, self.model.device)
-                self.model.near_cull_training = lambda: dm.active_cameras
-                when = "at each densification step"
-                by_start = " (the active start's default)" if config.model.near_cull_screen is None else ""
-                CONSOLE.print(f"near-cull-screen {near_cull:g}{by_start}: {when}, Gaussians nearer than "
-                              f"{config.model.near_cull_depth:g} x the median depth of any of the "
-                              f"{len(self.model.near_cull_views)} training-split cameras (poses only) and wider than "
-                              f"{near_cull:g} of its image are removed unless "
-                              + ("a training view shows them on its surface" if support == 1 else
-                                 f"{support} training views show them on their surfaces"), soft_wrap=True)
-        elif training and has_near_cull:
-            defaults = {f.name: f.default for f in fields(config.model)}  # the config's own, so they cannot drift
-            idle = [f"--pipeline.model.{name.replace('_', '-')}" for name in ("near_cull_depth", "near_cull_support")
-                    if getattr(config.model, name) != defaults[name]]
-            if idle:
-                off = "0 (off)" if config.model.near_cull_screen is not None else "off by default for this start"
-                CONSOLE.print(f"[yellow]{' and '.join(idle)} {'does' if len(idle) == 1 else 'do'} nothing in this run: "
-                              f"near-cull-screen is {off}; pass --pipeline.model.near-cull-screen 0.15 to turn the "
-                              "cull on", soft_wrap=True)
+        dm = self.datamanager
+        start = RunStart(seed_points=signature["seed-points"], split_cameras=dm.train_dataset.cameras,
+                         active_cameras=lambda: dm.active_cameras, training=training)
+        for name, strategy in getattr(self.model, "strategies_by_name", {}).items():
+            kept = strategy.at_start(self.model, start)
+            if kept is not None:  # what a resumed run must keep (the floater guard's bounds as resolved)
+                signature[name] = kept
         strategies = getattr(config.model, "strategy_configs", None)
         for name, options in (strategies() if strategies is not None else {}).items():
             if options.describe() is not None:  # a strategy that acts (off: the signature stays as it was)

@@ -422,9 +422,9 @@ def check_resume_matches(pipeline) -> None:
 def write_final_eval(trainer: Trainer, path: Path, worst_views: int = 0) -> Path:
     """`ns-eval`'s output for the trainer's current weights (what `_after_train` saves as the final checkpoint),
     plus each test view's own metrics (`test_views`: name, psnr, ssim, lpips, `view_depths`'s two depths and, from
-    the hpgs model, what lies in front of its camera (`describe_front`), in the test split's order) and, with
+    the hpgs model, what lies in front of its camera (`render.front.describe_front`), in the test split's order) and, with
     `worst_views`, JPEGs of the lowest-PSNR views beside `path` (`worst_views`: name, psnr, image file name), and
-    the splat's size (`num_gaussians`; with near-cull-screen on, `near_culled`)."""
+    the splat's size (`num_gaussians`) and what its strategies record (the floater guard's `near_culled`)."""
     pipeline = trainer.pipeline
     model = pipeline.model
     per_view: List[Dict[str, float]] = []
@@ -449,11 +449,13 @@ def write_final_eval(trainer: Trainer, path: Path, worst_views: int = 0) -> Path
     names = list(getattr(pipeline.datamanager, "test_view_names", []))
     named = len(names) == len(per_view)
     test_views = [{"name": n, **m} for n, m in zip(names, per_view)] if named else []
-    if test_views and hasattr(model, "describe_front"):
+    if test_views and hasattr(model, "strategies_by_name"):  # the hpgs model
+        from hpgs_ns.render.front import describe_front
+
         dm = pipeline.datamanager
         # the views it trained on, not the candidates
         training = dm.active_cameras if hasattr(dm, "active_cameras") else dm.train_dataset.cameras
-        fronts = model.describe_front(dm.eval_dataset.cameras, training, split=dm.train_dataset.cameras)
+        fronts = describe_front(model, dm.eval_dataset.cameras, training, split=dm.train_dataset.cameras)
         test_views = [{**v, **f} for v, f in zip(test_views, fronts)]
     worst_saved = []
     for rank, (psnr, index, image) in enumerate(worst):
@@ -469,8 +471,8 @@ def write_final_eval(trainer: Trainer, path: Path, worst_views: int = 0) -> Path
         "worst_views": worst_saved,
         "num_gaussians": int(getattr(model, "num_points", 0)),
     }
-    if getattr(model, "near_cull_screen", 0) > 0:  # as resolved for the run's start
-        payload["near_culled"] = int(model.near_culled)
+    for strategy in getattr(model, "trainer_strategies", []):  # e.g. the floater guard's count, where it was on
+        payload.update(strategy.final_eval())
     return write_json_atomic(path, payload)
 
 

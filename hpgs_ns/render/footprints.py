@@ -1,4 +1,4 @@
-"""Which Gaussians sit close in front of a camera and fill much of its image (`--pipeline.model.near-cull-screen`,
+"""Which Gaussians sit close in front of a camera and fill much of its image (the floater guard, `--pipeline.model.near-cull.*`,
 and the final eval's account of what lies in front of each test camera).
 
 gsplat's screen-size prune (splatfacto's `cull-screen-size`) measures a Gaussian's footprint in the view it is
@@ -91,7 +91,7 @@ def footprints(means: torch.Tensor, scales: torch.Tensor, views: PinholeViews, c
 
 
 FRONT_DEPTH = 0.25
-"""`in_front`'s depth bound: a fraction of the median depth of the centres in the view's image (near-cull-depth's
+"""`in_front`'s depth bound: a fraction of the median depth of the centres in the view's image (the floater guard's `depth`
 default)."""
 FRONT_SCREEN = 0.15
 """`in_front`'s "large": a footprint radius above this fraction of the image's larger side (cull-screen-size's)."""

@@ -2,11 +2,17 @@
 object with the hooks below, all no-ops by default, as gsplat's densification strategies have `step_pre_backward`
 and `step_post_backward`. The model (`HpgsSplatfactoModel`) builds the active ones from `registry` and calls:
 
+- `at_start(model, start)`: once the pipeline has set the run up (`RunStart`: the start as resolved, the training
+  split's cameras); returns what a resumed run must keep of it as text (None: nothing), and says at start what it
+  will do, or that it does nothing;
 - `after_views_added(model, views)`: at the start of training and after each selection round (once the round's
   own follow-up, e.g. `seed-points active`'s triangulation, is done), with the datamanager's `ActiveViews`;
 - `loss(model, outputs, batch, step)`: extra loss terms, merged into `get_loss_dict` (nerfstudio sums them);
 - `pre_backward(model, step)`: at the end of `get_loss_dict`, just before the trainer's backward;
-- `post_backward(model, step)`: in `step_post_backward`, after the optimizers' step.
+- `post_backward(model, step)`: in `step_post_backward`, after the optimizers' step and gsplat's densification of
+  that step (`model.is_refine_step()` says whether it ran);
+- `state()` / `load_state(state)`: what a checkpoint keeps of it (plain numbers); `final_eval()`: what
+  `--final-eval-json` records of it.
 
 `step` is the trainer's step (it keeps counting through restarts). A strategy that needs the rendered expected depth
 during training says so with `render_depth = True`.
@@ -15,7 +21,7 @@ during training says so with `render_depth = True`.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Dict, List, Optional, Type
+from typing import Any, Callable, Dict, List, Optional, Type
 
 import torch
 from nerfstudio.configs.base_config import InstantiateConfig
@@ -59,10 +65,27 @@ class RenderedView:
     height: int
 
 
+@dataclass
+class RunStart:
+    """What strategies see of the run once the pipeline has set it up."""
+
+    seed_points: str
+    """The start as resolved (`colmap`, `colmap-initial`, `active` or `random`; `auto` is one of these by now)."""
+    split_cameras: Any
+    """The training split's cameras (nerfstudio `Cameras`, active and candidate: poses and intrinsics only)."""
+    active_cameras: Callable[[], Any]
+    """The active training views' cameras now."""
+    training: bool
+    """A training run (False: `ns-eval`, `ns-viewer` opening one)."""
+
+
 class Strategy:
     """The hooks, all no-ops (see the module docstring)."""
 
     render_depth: bool = False
+
+    def at_start(self, model: Any, start: RunStart) -> Optional[str]:
+        return None
 
     def after_views_added(self, model: Any, views: ActiveViews) -> None:
         return None
@@ -75,6 +98,15 @@ class Strategy:
 
     def post_backward(self, model: Any, step: int) -> None:
         return None
+
+    def state(self) -> Dict[str, Any]:
+        return {}
+
+    def load_state(self, state: Dict[str, Any]) -> None:
+        return None
+
+    def final_eval(self) -> Dict[str, Any]:
+        return {}
 
 
 @dataclass

@@ -83,3 +83,23 @@ def test_resuming_an_old_run_upgrades_its_pipeline_and_keeps_selecting(old_run):
     log = json.loads((old_run / "selected_views.json").read_text())
     assert [r["step"] for r in log["rounds"]] == [10, 20, 30]
     assert len(log["active"]) == 7
+
+
+def test_a_0_4_model_config_reads_its_floater_guard_options_into_the_strategy_group():
+    from hpgs_ns.model import HpgsSplatfactoModelConfig
+
+    text = yaml.dump(HpgsSplatfactoModelConfig())
+    assert "near_cull:" in text
+    # 0.4 wrote the guard's options as three model fields, and no strategy group
+    old = text.replace("near_cull: !!python/object:hpgs_ns.strategies.near_cull.NearCullConfig", "near_cull_old:")
+    old += "near_cull_screen: 0.1\nnear_cull_depth: 0.3\nnear_cull_support: 1\n"
+    config = yaml.load(old, Loader=yaml.UnsafeLoader)
+    assert (config.near_cull.screen, config.near_cull.depth, config.near_cull.support) == (0.1, 0.3, 1)
+    assert "near_cull_screen" not in config.__dict__
+
+
+def test_a_0_4_checkpoint_keeps_the_guards_count():
+    from hpgs_ns import compat
+
+    assert compat.strategy_states({"near_culled": 5}) == {"near-cull": {"culled": 5}}
+    assert compat.strategy_states({"strategies": {"near-cull": {"culled": 2}}}) == {"near-cull": {"culled": 2}}

@@ -152,7 +152,7 @@ def test_the_registry_gives_the_model_its_option_group():
     config = HpgsSplatfactoModelConfig()
     assert "depth_loss" in {f.name for f in fields(config)}
     assert config.depth_loss.weight == 0.0 and not config.depth_loss.active()  # off by default: nothing built
-    assert list(config.strategy_configs()) == ["depth-loss"]
+    assert list(config.strategy_configs()) == ["near-cull", "depth-loss"]  # the registry's order
 
 
 def test_a_start_without_points_says_the_loss_does_nothing(capsys):
@@ -175,7 +175,7 @@ def test_a_few_hpgs_steps_on_a_real_capture_train_with_the_depth_loss(tmp_path, 
     assert dm.seed_points_mode == "colmap"
     assert "depth loss 0.1: disparity at the" in capsys.readouterr().out
     # every point the loss holds is seen by an active view, and by no other view in its kept track
-    strategy = model.trainer_strategies[0]
+    strategy = model.strategies_by_name["depth-loss"]
     inactive = torch.ones(strategy.observers.shape[1], dtype=torch.bool)
     inactive[torch.tensor(dm.active)] = False
     assert strategy.xyz.shape[0] > 100 and strategy.observers.any(1).all()

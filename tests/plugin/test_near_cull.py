@@ -1,5 +1,5 @@
-"""`--pipeline.model.near-cull-screen`: Gaussians close in front of a training-split camera (active or candidate)
-and wide in its image are removed at densification steps (issue #46's floater guard)."""
+"""The floater guard (`--pipeline.model.near-cull.*`, `hpgs_ns.strategies.near_cull`): Gaussians close in front of a
+training-split camera (active or candidate) and wide in its image are removed at densification steps."""
 
 from __future__ import annotations
 
@@ -10,6 +10,17 @@ from helpers import train_steps
 
 from hpgs_ns.errors import OptionError
 from hpgs_ns.render.footprints import PinholeViews, near_and_large
+from hpgs_ns.render.front import describe_front, training_surfaces
+from hpgs_ns.strategies.near_cull import NearCullConfig
+
+
+def guard(model):
+    """The model's floater guard."""
+    return model.strategies_by_name["near-cull"]
+
+
+def surfaces_of(model):
+    return training_surfaces(model, guard(model).active_cameras())
 
 
 def one_camera(width=100, height=80, f=100.0) -> PinholeViews:
@@ -69,14 +80,14 @@ def test_a_second_camera_finds_what_the_first_cannot_see():
 def test_the_model_removes_what_is_near_wide_and_on_no_training_surface_with_its_optimizer_rows(tiny_scene, tmp_path):
     from hpgs_ns.render.footprints import surface_support
 
-    trainer = model_trainer(tiny_scene, tmp_path, near_cull_screen=0.15, near_cull_support=1)  # one surface keeps
+    trainer = model_trainer(tiny_scene, tmp_path, near_cull=NearCullConfig(screen=0.15, support=1))  # one surface keeps
     model, dm = trainer.pipeline.model, trainer.pipeline.datamanager
-    views = model.near_cull_views
+    views = guard(model).views
     assert views is not None and len(views) == len(dm.train_dataset)  # active + candidates
     train_steps(trainer, range(2))
     # a wide, faint Gaussian just in front of a candidate camera that the training views see through (the first
     # candidate whose spot lies on no training view's rendered surface: the ring's points come near some cameras)
-    surfaces = model.training_surfaces()
+    surfaces = surfaces_of(model)
     assert len(surfaces[0]) == len(dm.active) and max(d.shape[0] for d in surfaces[1]) <= 48  # the 6 active views
     c2w = dm.train_dataset.cameras.camera_to_worlds
     spots = torch.stack([c2w[c, :3, 3] - 0.05 * c2w[c, :3, 2] for c in dm.candidates]).to(model.means.device)
@@ -87,16 +98,16 @@ def test_the_model_removes_what_is_near_wide_and_on_no_training_surface_with_its
         model.gauss_params["opacities"][-1] = torch.logit(torch.tensor(0.02))
     n, means = model.num_points, model.means.detach().clone()
     near = near_and_large(means, torch.exp(model.scales.detach()), views, 0.15, 0.25)
-    off = surface_support(means, *model.training_surfaces()) == 0
+    off = surface_support(means, *surfaces_of(model)) == 0
     assert near[-1] and off[-1]  # the floater: near and wide before the candidate, on no training surface
     assert (near & ~off).any()  # some near-and-wide Gaussians are on a training view's surface: they stay
-    removed = model.cull_near_large()
-    assert removed == int((near & off).sum()) and model.near_culled == removed and model.num_points == n - removed
+    removed = guard(model).cull(model)
+    assert removed == int((near & off).sum()) and guard(model).culled == removed and model.num_points == n - removed
     assert torch.equal(model.means.detach(), means[~(near & off)])
     for name, param in model.gauss_params.items():  # optimizer state rows follow the parameters
         state = trainer.optimizers.optimizers[name].state[param]
         assert param.shape[0] == model.num_points and state["exp_avg"].shape[0] == model.num_points
-    assert model.get_extra_state()["near_culled"] == removed
+    assert model.get_extra_state()["strategies"]["near-cull"]["culled"] == removed
 
 
 def test_a_centre_is_on_a_surface_only_where_a_view_renders_it_there():
@@ -133,80 +144,81 @@ def test_surface_support_counts_the_views_that_render_a_centre_on_their_surface(
 
 def test_training_culls_at_densification_steps_only_and_not_when_off(tiny_scene, tmp_path):
     for on in (True, False):
-        trainer = model_trainer(tiny_scene, tmp_path / str(on), near_cull_screen=0.15 if on else 0.0)
+        trainer = model_trainer(tiny_scene, tmp_path / str(on), near_cull=NearCullConfig(screen=0.15 if on else 0.0))
         model = trainer.pipeline.model
-        assert (model.near_cull_views is not None) == on
+        assert (guard(model).views is not None) == on
         calls = []
-        model.cull_near_large = lambda calls=calls, model=model: calls.append(model.step) or 0
+        guard(model).cull = lambda *_, calls=calls, model=model: calls.append(model.step) or 0
         model.strategy.refine_start_iter, model.strategy.refine_every = 2, 3  # densify at steps 3, 6, 9
         train_steps(trainer, range(11))
         assert calls == ([3, 6, 9] if on else [])
 
 
 def test_the_cull_acts_at_densification_steps_and_stops_with_densification(tiny_scene, tmp_path, capsys):
-    trainer = model_trainer(tiny_scene, tmp_path / "on", near_cull_screen=0.15)
+    trainer = model_trainer(tiny_scene, tmp_path / "on", near_cull=NearCullConfig(screen=0.15))
     model = trainer.pipeline.model
     calls = []
-    model.cull_near_large = lambda: calls.append(model.step) or 0
+    guard(model).cull = lambda *_: calls.append(model.step) or 0
     strategy = model.strategy
     strategy.refine_start_iter, strategy.refine_every, strategy.refine_stop_iter = 2, 3, 7  # densify at 3, 6
     train_steps(trainer, range(14))
     assert calls == [3, 6]
     assert trainer.pipeline.datamanager.selection_signature["near-cull"] == "0.15 0.25 support 2"
-    model_trainer(tiny_scene, tmp_path / "idle", near_cull_depth=0.3)  # the capture's points: off by default
-    assert ("--pipeline.model.near-cull-depth does nothing in this run: near-cull-screen is off by default for this "
+    model_trainer(tiny_scene, tmp_path / "idle", near_cull=NearCullConfig(depth=0.3))  # the capture's points: off by default
+    assert ("--pipeline.model.near-cull.depth does nothing in this run: --pipeline.model.near-cull.screen is off by default for this "
             "start") in capsys.readouterr().out
 
 
 def test_with_support_two_a_suspect_that_one_training_view_renders_on_its_surface_goes(tiny_scene, tmp_path, capsys):
     from hpgs_ns.render.footprints import surface_support
 
-    trainer = model_trainer(tiny_scene, tmp_path, near_cull_screen=0.15, near_cull_support=2)
+    trainer = model_trainer(tiny_scene, tmp_path, near_cull=NearCullConfig(screen=0.15, support=2))
     model = trainer.pipeline.model
     assert trainer.pipeline.datamanager.selection_signature["near-cull"] == "0.15 0.25 support 2"
     assert "unless 2 training views show them on their surfaces" in capsys.readouterr().out
     train_steps(trainer, range(2))
     means = model.means.detach().clone()
-    near = near_and_large(means, torch.exp(model.scales.detach()), model.near_cull_views, 0.15, 0.25)
-    support = surface_support(means, *model.training_surfaces())
+    near = near_and_large(means, torch.exp(model.scales.detach()), guard(model).views, 0.15, 0.25)
+    support = surface_support(means, *surfaces_of(model))
     assert (near & (support == 1)).any()  # some suspects have one view's support: support 1 would keep them
-    removed = model.cull_near_large()
+    removed = guard(model).cull(model)
     assert removed == int((near & (support < 2)).sum())
     assert torch.equal(model.means.detach(), means[~(near & (support < 2))])
 
 
 def test_the_signature_and_the_idle_warning_name_support_only_when_it_is_not_one(tiny_scene, tmp_path, capsys):
-    one = model_trainer(tiny_scene, tmp_path / "one", near_cull_screen=0.15, near_cull_support=1)
+    one = model_trainer(tiny_scene, tmp_path / "one", near_cull=NearCullConfig(screen=0.15, support=1))
     assert one.pipeline.datamanager.selection_signature["near-cull"] == "0.15 0.25"  # as the first version wrote it
     assert "unless a training view shows them on its surface" in capsys.readouterr().out
-    idle = model_trainer(tiny_scene, tmp_path / "idle", near_cull_screen=0.0, near_cull_support=1)
+    idle = model_trainer(tiny_scene, tmp_path / "idle", near_cull=NearCullConfig(screen=0.0, support=1))
     assert "near-cull" not in idle.pipeline.datamanager.selection_signature
-    assert "--pipeline.model.near-cull-support does nothing in this run: near-cull-screen is 0 (off)" in capsys.readouterr().out
+    assert ("--pipeline.model.near-cull.support does nothing in this run: --pipeline.model.near-cull.screen is 0 (off)"
+            in capsys.readouterr().out)
 
 
 def test_unset_the_guard_is_on_for_the_active_start_and_off_for_the_capture_points(tiny_scene, tmp_path, capsys):
-    from hpgs_ns.model import ACTIVE_START_NEAR_CULL
+    from hpgs_ns.strategies.near_cull import ACTIVE_START_SCREEN
 
     # tiny_scene has a point cloud: `auto` starts from it, and the guard stays off
     seeded = model_trainer(tiny_scene, tmp_path / "seeded")
     assert seeded.pipeline.datamanager.seed_points_mode == "colmap"
-    assert seeded.pipeline.model.near_cull_screen == 0.0 and seeded.pipeline.model.near_cull_views is None
+    assert guard(seeded.pipeline.model).screen == 0.0 and guard(seeded.pipeline.model).views is None
     assert "near-cull" not in seeded.pipeline.datamanager.selection_signature
     capsys.readouterr()
     cfg = short_config(tiny_scene, tmp_path / "active", steps=12, rounds=0, seed_points="active")
     active = cfg.setup(local_rank=0, world_size=1)
     active.setup()
     model = active.pipeline.model
-    assert ACTIVE_START_NEAR_CULL == 0.15 and model.near_cull_screen == 0.15
-    assert model.near_cull_views is not None and len(model.near_cull_views) == len(active.pipeline.datamanager.train_dataset)
+    assert ACTIVE_START_SCREEN == 0.15 and guard(model).screen == 0.15
+    assert guard(model).views is not None and len(guard(model).views) == len(active.pipeline.datamanager.train_dataset)
     assert active.pipeline.datamanager.selection_signature["near-cull"] == "0.15 0.25 support 2"
-    assert "near-cull-screen 0.15 (the active start's default): at each densification step" in capsys.readouterr().out
+    assert "near-cull screen 0.15 (the active start's default): at each densification step" in capsys.readouterr().out
     # 0 turns it off for that start too
     cfg = short_config(tiny_scene, tmp_path / "active-off", steps=12, rounds=0, seed_points="active")
-    cfg.pipeline.model.near_cull_screen = 0.0
+    cfg.pipeline.model.near_cull.screen = 0.0
     off = cfg.setup(local_rank=0, world_size=1)
     off.setup()
-    assert off.pipeline.model.near_cull_screen == 0.0 and "near-cull" not in off.pipeline.datamanager.selection_signature
+    assert guard(off.pipeline.model).screen == 0.0 and "near-cull" not in off.pipeline.datamanager.selection_signature
 
 
 def test_a_resume_across_the_guards_default_names_the_flags_that_give_the_checkpoint_back():
@@ -223,11 +235,11 @@ def test_a_resume_across_the_guards_default_names_the_flags_that_give_the_checkp
     resume(dict(now))
     # an active run from before the default had no guard
     with pytest.raises(CheckpointError, match=r"near-cull: checkpoint off, now 0.15 0.25 support 2.*"
-                                              r"--pipeline.model.near-cull-screen 0: the active start had no floater"):
+                                              r"--pipeline.model.near-cull.screen 0: the active start had no floater"):
         resume({k: v for k, v in now.items() if k != "near-cull"})
     # the guard's first version (support 1); one kept on to the end used an option 0.5 removed
-    with pytest.raises(CheckpointError, match="near-cull-screen 0.15 --pipeline.model.near-cull-depth 0.25 "
-                                              "--pipeline.model.near-cull-support 1\\)"):
+    with pytest.raises(CheckpointError, match="near-cull.screen 0.15 --pipeline.model.near-cull.depth 0.25 "
+                                              "--pipeline.model.near-cull.support 1\\)"):
         resume({**now, "near-cull": "0.15 0.25"})
     with pytest.raises(CheckpointError, match="trained with --pipeline.model.near-cull-to-end True, which hpgs-ns 0.5"):
         resume({**now, "near-cull": "0.15 0.25 support 2 to end"})
@@ -237,13 +249,10 @@ def test_a_resume_across_the_guards_default_names_the_flags_that_give_the_checkp
             loaded_selection_signature=now, selection_signature={k: v for k, v in now.items() if k != "near-cull"})))
 
 
-@pytest.mark.parametrize("flag, value", [("near_cull_screen", -0.1), ("near_cull_screen", 1.0), ("near_cull_depth", 0.0),
-                                         ("near_cull_support", 0)])
+@pytest.mark.parametrize("flag, value", [("screen", -0.1), ("screen", 1.0), ("depth", 0.0), ("support", 0)])
 def test_values_that_make_no_sense_are_one_line_errors(flag, value):
-    from hpgs_ns.model import HpgsSplatfactoModelConfig
-
-    with pytest.raises(OptionError, match="--pipeline.model." + flag.replace("_", "-")):
-        HpgsSplatfactoModelConfig(**{flag: value})
+    with pytest.raises(OptionError, match=f"--pipeline.model.near-cull.{flag} "):
+        NearCullConfig(**{flag: value})
 
 
 def test_the_final_eval_records_the_count_only_when_the_cull_is_on(tiny_scene, tmp_path):
@@ -252,8 +261,8 @@ def test_the_final_eval_records_the_count_only_when_the_cull_is_on(tiny_scene, t
     from hpgs_ns.trainer import write_final_eval
 
     for on in (True, False):
-        trainer = model_trainer(tiny_scene, tmp_path / str(on), near_cull_screen=0.15 if on else 0.0)
-        trainer.pipeline.model.near_culled = 7 if on else 0
+        trainer = model_trainer(tiny_scene, tmp_path / str(on), near_cull=NearCullConfig(screen=0.15 if on else 0.0))
+        guard(trainer.pipeline.model).culled = 7 if on else 0
         data = json.loads(write_final_eval(trainer, tmp_path / f"eval-{on}.json").read_text())
         assert data.get("near_culled") == (7 if on else None)
 
@@ -281,7 +290,7 @@ def test_the_final_eval_says_what_lies_in_front_of_each_test_camera(tiny_scene, 
 
     from hpgs_ns.trainer import write_final_eval
 
-    trainer = model_trainer(tiny_scene, tmp_path, near_cull_screen=0.0)
+    trainer = model_trainer(tiny_scene, tmp_path, near_cull=NearCullConfig(screen=0.0))
     model, dm = trainer.pipeline.model, trainer.pipeline.datamanager
     train_steps(trainer, range(2))
     before = json.loads(write_final_eval(trainer, tmp_path / "before.json").read_text())["test_views"]
@@ -321,7 +330,7 @@ def test_reach_any_image_is_a_footprint_reaching_into_some_view_from_in_front():
 
 
 def test_the_shares_in_view_and_suspect_follow_the_training_cameras_and_the_split(tiny_scene, tmp_path):
-    trainer = model_trainer(tiny_scene, tmp_path, near_cull_screen=0.0)
+    trainer = model_trainer(tiny_scene, tmp_path, near_cull=NearCullConfig(screen=0.0))
     model, dm = trainer.pipeline.model, trainer.pipeline.datamanager
     train_steps(trainer, range(2))
     test = dm.eval_dataset.cameras
@@ -332,8 +341,8 @@ def test_the_shares_in_view_and_suspect_follow_the_training_cameras_and_the_spli
         model.gauss_params["scales"][-1] = torch.log(torch.tensor(0.05))
     # the test camera itself as the only "training" view and the only split camera: the floater lies in its image
     # and is near and wide there, so every large Gaussian in front of it counts as both
-    mine = model.describe_front(test[0:1], test[0:1], split=test[0:1])[0]
+    mine = describe_front(model, test[0:1], test[0:1], split=test[0:1])[0]
     assert mine["front_large"] >= 1 and mine["front_large_in_view"] == 1.0 and mine["front_large_suspect"] == 1.0
     # without a split no suspect share is written; training views that look elsewhere see a smaller share
-    far = model.describe_front(test[0:1], dm.active_cameras)[0]
+    far = describe_front(model, test[0:1], dm.active_cameras)[0]
     assert "front_large_suspect" not in far and 0.0 <= far["front_large_in_view"] <= 1.0
