@@ -152,6 +152,17 @@ class SelectionLoopConfig(InstantiateConfig):
                      if not f.name.startswith("_") and getattr(group, f.name) != getattr(default, f.name, None)]
         return idle
 
+    def idle_selector_notes(self) -> List[str]:
+        """Start-up lines for `idle_selector_options` (none when every option set belongs to a selector in use)."""
+        idle = self.idle_selector_options()
+        if not idle:
+            return []
+        owners = sorted({flag.split(".")[2] for flag in idle})
+        fix = (f"add --pipeline.selection.selector {owners[0]}" if len(owners) == 1 else
+               f"--pipeline.selection.selector picks one of {', '.join(owners)}")
+        return [f"{', '.join(idle)} {'does' if len(idle) == 1 else 'do'} nothing in this run: the selector is "
+                f"{self.selector} ({fix})"]
+
     def resume_signature(self, seed: int) -> Dict[str, str]:
         """What a resumed run must keep from its checkpoint ({option: value as text}): the selector, its options,
         the seed and the round schedule. max-rounds and the step count may grow (a longer run adds rounds)."""

@@ -7,6 +7,7 @@ every earlier version (0.1 logs lack `work`, older ones `reset`).
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from typing import Any, Dict, List, Optional
 
@@ -39,7 +40,7 @@ class RoundRecord:
     num_gaussians_before_reset: Optional[int] = None
     num_gaussians_after_reset: Optional[int] = None
     after_add: Dict[str, float] = field(default_factory=dict)
-    """What `--pipeline.selection.after-add` did after this round (a restart's and `seed-points active`'s points: counts and seconds)."""
+    """`seed-points active`'s points after this round, as the round log writes them (`PointsOutcome.fields`)."""
 
     def to_dict(self) -> Dict[str, Any]:
         """Plain types only (checkpoints load with `torch.load(weights_only=True)`); the reset counts only when a
@@ -75,6 +76,49 @@ class RoundRecord:
     def label(self) -> str:
         """The round as the viewer's dropdown names it."""
         return f"round {self.round} (step {self.step})"
+
+
+@dataclass(frozen=True)
+class ResetOutcome:
+    """The splat back at its step-0 Gaussians after a round (reset-after-add, or a restart)."""
+
+    num_gaussians_before: int
+    num_gaussians_after: int
+    """After the reset and the points the restart starts from."""
+
+
+@dataclass(frozen=True)
+class PointsOutcome:
+    """`seed-points active` after a round: points added away from the splat, or those a restart starts from."""
+
+    added: int = 0
+    restart: Optional[int] = None
+    """The points a restart starts from (None: no restart triangulated)."""
+    seconds: float = 0.0
+
+    def fields(self) -> Dict[str, float]:
+        """The round log's `after_add` entries."""
+        if self.restart is not None:
+            return {"seed_points_restart": float(self.restart), "seed_points_seconds": float(self.seconds)}
+        return {"seed_points_added": float(self.added), "seed_points_seconds": float(self.seconds)}
+
+
+@dataclass(frozen=True)
+class RoundFollowUp:
+    """What followed a round's add: a reset or restart, and `seed-points active`'s points (None: nothing)."""
+
+    reset: Optional[ResetOutcome] = None
+    points: Optional[PointsOutcome] = None
+
+    def recorded_in(self, record: RoundRecord) -> RoundRecord:
+        """`record` with what followed its add."""
+        changes: Dict[str, Any] = {}
+        if self.reset is not None:
+            changes.update(reset=True, num_gaussians_before_reset=self.reset.num_gaussians_before,
+                           num_gaussians_after_reset=self.reset.num_gaussians_after)
+        if self.points is not None:
+            changes["after_add"] = {**record.after_add, **self.points.fields()}
+        return dataclasses.replace(record, **changes)
 
 
 @dataclass

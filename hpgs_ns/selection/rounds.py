@@ -13,11 +13,10 @@ model owns rendering; the selector owns scoring. This class asks each for its pa
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import time
 from pathlib import Path
-from typing import Any, Callable, Dict, List, Optional, Tuple
+from typing import Callable, Dict, List, Optional, Tuple
 
 import numpy as np
 import torch
@@ -32,7 +31,7 @@ from hpgs_ns.selection.after_add import restarts_at
 from hpgs_ns.selection.candidate_log import CandidateLog
 from hpgs_ns.selection.early_stop import GainModel
 from hpgs_ns.selection.log import FILE_NAME, SelectionLog
-from hpgs_ns.selection.records import RoundRecord, StopRecord
+from hpgs_ns.selection.records import PointsOutcome, ResetOutcome, RoundFollowUp, RoundRecord, StopRecord
 from hpgs_ns.selection.schedule import Every, run_steps
 from hpgs_ns.selectors.base import Selection, SelectionContext, SelectionError, Selector, check_selection
 
@@ -181,66 +180,17 @@ class SelectionRounds:
                 f"{min(cfg.views_per_round / pool, 1):.2f} or lower --pipeline.selection.views-per-round")
 
     def callbacks(self, attrs: TrainingCallbackAttributes) -> List[TrainingCallback]:
-        """The BEFORE_TRAIN_ITERATION callback that runs rounds (and resets), and one that writes the final log.
-        Says at start when fewer rounds than `max_rounds` will run, and why."""
+        """The BEFORE_TRAIN_ITERATION callback that runs rounds (and what follows each), and one that writes the final
+        log. Says at start what the run will do (`announce`, `restart_plan`)."""
         trainer = attrs.trainer
         if trainer is not None and getattr(trainer, "base_dir", None) is not None:
             self.run_dir = Path(trainer.base_dir)
         first, end = run_steps(trainer) if trainer is not None else (0, 0)
-        count = None  # rounds this run will still run (None: no trainer to say how many steps it has)
-        if trainer is not None:
-            count, why = self.plan(first, end)
-            gain = self.predicted_gain()
-            if gain is not None:
-                CONSOLE.print(f"stop-when-gain-below {self.config.stop_when_gain_below:g} dB: the first round is predicted "
-                              f"to gain {gain:.2f} dB; selection stops at the first round predicted below it")
-            if why:
-                ran = len(self.datamanager.history)  # rounds a resumed run ran before its checkpoint
-                total = ran + count
-                if count == 0:
-                    what = f"no more selection rounds will run ({ran} ran before the checkpoint)" if ran else \
-                        "no selection rounds will run"
-                else:
-                    what = f"only {total} of {self.config.max_rounds} selection rounds will run"
-                    what += f" ({ran} before the checkpoint, {count} from step {first})" if ran else ""
-                CONSOLE.print(f"[yellow]{what}: {why}", soft_wrap=True)
-        for note in self.config.shortlist_notes():
-            CONSOLE.print(f"[yellow]{note}", soft_wrap=True)
-        if count:
-            self.check_shortlist(count)
-        idle = self.config.idle_selector_options()
-        if idle:  # options of a selector this run does not use
-            owners = sorted({flag.split(".")[2] for flag in idle})
-            fix = (f"add --pipeline.selection.selector {owners[0]}" if len(owners) == 1 else
-                   f"--pipeline.selection.selector picks one of {', '.join(owners)}")
-            CONSOLE.print(f"[yellow]{', '.join(idle)} {'does' if len(idle) == 1 else 'do'} nothing in this run: the "
-                          f"selector is {self.config.selector} ({fix})", soft_wrap=True)
-        dm = self.datamanager
-        active_mode = getattr(dm, "seed_points_mode", None) == "active"
-        restart_counts: Tuple[int, ...] = ()
-        if not self.config.reset_after_add:
-            initial = len(dm.initial_views)
-            random_start = bool(getattr(self.model, "random_start", False))
-            if count is None:
-                reachable = min(initial + self.config.max_rounds * self.config.views_per_round, len(dm.active) + len(dm.candidates))
-            else:  # the views the run will end with: what is active now and what the rounds still to run add
-                reachable = len(dm.active) + min(count * self.config.views_per_round, len(dm.candidates))
-            after_add = self.config.after_add
-            restart_counts = after_add.restart_counts(initial, random_start, active_mode and not random_start, reachable)
-            if restart_counts and not after_add.restart_at_views:  # HP-GS's 20 + 7: none
-                at = " and ".join(map(str, restart_counts))
-                if random_start:
-                    start, source, flag = "random start", "", "restart-random-starts"
-                elif active_mode:
-                    start, source, flag = "active seed points", "what the active views triangulate then", "restart-active-starts"
-                else:
-                    start, source, flag = "seed points", "the capture's points", "restart-seeded-starts"
-                if source:
-                    source = " from " + source
-                CONSOLE.print(f"{start}: the splat restarts at {at} views{source} "
-                              f"(--pipeline.selection.after-add.{flag} False: never)", soft_wrap=True)
+        count = self.announce(first, end) if trainer is not None else None
+        restart_counts = self.restart_plan(count)
         if self.config.reset_after_add or restart_counts:
             self.model.keep_initial_for_resets()
+        active_mode = getattr(self.datamanager, "seed_points_mode", None) == "active"
         self.tell_strategies()  # the active views as the run starts (a resumed run's: its checkpoint's)
 
         def before_iteration(step: int) -> None:
@@ -249,10 +199,10 @@ class SelectionRounds:
             if self.is_round_step(step):
                 before = len(self.datamanager.active)
                 self.run_round(step)
-                done = self.after_round(step, attrs.optimizers, before, restart_counts, end, active_mode)
+                follow_up = self.after_round(step, attrs.optimizers, before, restart_counts, end, active_mode)
                 self.tell_strategies()
-                # The round is recorded once, with what every step after the add did, and logged once.
-                self.datamanager.history[-1] = dataclasses.replace(self.datamanager.history[-1], **done)
+                # The round is recorded once, with what followed the add, and logged once.
+                self.datamanager.history[-1] = follow_up.recorded_in(self.datamanager.history[-1])
                 self.write_log()
                 for listener in self.listeners:  # the finished record
                     listener(self.datamanager.history[-1])
@@ -268,6 +218,56 @@ class SelectionRounds:
             )
         return callbacks
 
+    def announce(self, first: int, end: int) -> int:
+        """At start, for a run of steps [first, end): say when fewer rounds than `max-rounds` will run and why, what
+        early stop predicts, and which selection options do nothing (`SelectionConfig.shortlist_notes`,
+        `idle_selector_options`); check the shortlist against the last round. Returns the rounds still to run."""
+        count, why = self.plan(first, end)
+        gain = self.predicted_gain()
+        if gain is not None:
+            CONSOLE.print(f"stop-when-gain-below {self.config.stop_when_gain_below:g} dB: the first round is predicted "
+                          f"to gain {gain:.2f} dB; selection stops at the first round predicted below it")
+        if why:
+            ran = len(self.datamanager.history)  # rounds a resumed run ran before its checkpoint
+            if count == 0:
+                what = f"no more selection rounds will run ({ran} ran before the checkpoint)" if ran else \
+                    "no selection rounds will run"
+            else:
+                what = f"only {ran + count} of {self.config.max_rounds} selection rounds will run"
+                what += f" ({ran} before the checkpoint, {count} from step {first})" if ran else ""
+            CONSOLE.print(f"[yellow]{what}: {why}", soft_wrap=True)
+        for note in self.config.shortlist_notes() + self.config.idle_selector_notes():
+            CONSOLE.print(f"[yellow]{note}", soft_wrap=True)
+        if count:
+            self.check_shortlist(count)
+        return count
+
+    def restart_plan(self, count: Optional[int]) -> Tuple[int, ...]:
+        """The view counts at which the splat restarts in this run (none under reset-after-add, which resets at every
+        round), said at start where a start's default decides them; `count`: the rounds still to run (None: as
+        configured)."""
+        if self.config.reset_after_add:
+            return ()
+        dm, after_add = self.datamanager, self.config.after_add
+        active_mode = getattr(dm, "seed_points_mode", None) == "active"
+        initial = len(dm.initial_views)
+        random_start = bool(getattr(self.model, "random_start", False))
+        if count is None:
+            reachable = min(initial + self.config.max_rounds * self.config.views_per_round, len(dm.active) + len(dm.candidates))
+        else:  # the views the run will end with: what is active now and what the rounds still to run add
+            reachable = len(dm.active) + min(count * self.config.views_per_round, len(dm.candidates))
+        counts = after_add.restart_counts(initial, random_start, active_mode and not random_start, reachable)
+        if counts and not after_add.restart_at_views:  # HP-GS's 20 + 7: none
+            if random_start:
+                start, source, flag = "random start", "", "restart-random-starts"
+            elif active_mode:
+                start, source, flag = "active seed points", " from what the active views triangulate then", "restart-active-starts"
+            else:
+                start, source, flag = "seed points", " from the capture's points", "restart-seeded-starts"
+            CONSOLE.print(f"{start}: the splat restarts at {' and '.join(map(str, counts))} views{source} "
+                          f"(--pipeline.selection.after-add.{flag} False: never)", soft_wrap=True)
+        return counts
+
     def tell_strategies(self) -> None:
         """Give the model's trainer strategies (`hpgs_ns.strategies`), if it runs any, the active views and the
         points they see now (after a round: once its follow-up, e.g. `seed-points active`'s triangulation, ran)."""
@@ -275,25 +275,23 @@ class SelectionRounds:
             self.model.after_views_added(self.datamanager.active_views())
 
     def after_round(self, step: int, optimizers, before: int, restart_counts: Tuple[int, ...], end: int,
-                    active_mode: bool) -> Dict[str, Any]:
-        """What follows a round's add: reset-after-add, a restart (and the points it starts from), and
-        `seed-points active`'s new points. Returns the RoundRecord fields they set (`after_add` to be merged)."""
-        done: Dict[str, Any] = {}
-        after_add: Dict[str, float] = {}
+                    active_mode: bool) -> RoundFollowUp:
+        """What follows a round's add: reset-after-add or a restart (and the points it starts from), and
+        `seed-points active`'s new points."""
+        reset: Optional[ResetOutcome] = None
+        points: Optional[PointsOutcome] = None
         active_seeds = active_mode and optimizers is not None
         if self.config.reset_after_add:
-            done.update(self.reset_model(step, optimizers))
+            reset = ResetOutcome(self.reset_model(step, optimizers), int(self.model.num_points))
         elif restarts_at(restart_counts, before, len(self.datamanager.active)):
-            done.update(self.reset_model(step, optimizers, end=end))
+            gaussians_before = self.reset_model(step, optimizers, end=end)
             if active_seeds:
-                after_add.update(self.reseed_from_active(step, optimizers))
+                points = self.reseed_from_active(step, optimizers)
                 active_seeds = False  # an active restart triangulated every active view already
-            done["num_gaussians_after_reset"] = int(self.model.num_points)
+            reset = ResetOutcome(gaussians_before, int(self.model.num_points))
         if active_seeds:
-            after_add.update(self.add_seed_points(step, optimizers))
-        if after_add:
-            done["after_add"] = after_add
-        return done
+            points = self.add_seed_points(step, optimizers)
+        return RoundFollowUp(reset, points)
 
     # ---- one round -------------------------------------------------------------------------------------------
 
@@ -361,10 +359,9 @@ class SelectionRounds:
             self.candidate_log.on_round(record)
         return selection
 
-    def reset_model(self, step: int, optimizers, end: Optional[int] = None) -> Dict[str, Any]:
+    def reset_model(self, step: int, optimizers, end: Optional[int] = None) -> int:
         """The model back to its step-0 state and every schedule restarted at `step` (reset-after-add); with `end`
-        (after-add restart-at-views), the schedules squeezed into the steps from `step` to `end`. Returns the round
-        record's reset fields."""
+        (a restart), the schedules squeezed into the steps from `step` to `end`. Returns the Gaussians before."""
         model = self.model
         if optimizers is None or not hasattr(model, "reset_to_initial"):
             raise RoundError("reset-after-add needs the hpgs model and the trainer's optimizers")
@@ -381,12 +378,12 @@ class SelectionRounds:
                     f"every schedule reruns in the {left} steps left")
         CONSOLE.print(what)
         writer.put_scalar("selection/num_gaussians_before_reset", before, step)
-        return {"reset": True, "num_gaussians_before_reset": int(before), "num_gaussians_after_reset": int(model.num_points)}
+        return int(before)
 
-    def reseed_from_active(self, step: int, optimizers) -> Dict[str, float]:
+    def reseed_from_active(self, step: int, optimizers) -> PointsOutcome:
         """`seed-points active` at a restart: the splat starts over from the points the active views triangulate now
         (not from the initial views' few, or random, points); with too few, from its step-0 Gaussians. Returns
-        `seed_points_restart` (the count) and `seed_points_seconds`."""
+        what it did."""
         dm, model = self.datamanager, self.model
         start = time.perf_counter()
         xyz, rgb, info = dm.triangulate_active()
@@ -396,12 +393,12 @@ class SelectionRounds:
         else:
             CONSOLE.print(f"[yellow]restart: {info.message or 'no points triangulated'}; the splat starts from its "
                           "step-0 Gaussians", soft_wrap=True)
-        return {"seed_points_restart": float(count), "seed_points_seconds": float(time.perf_counter() - start)}
+        return PointsOutcome(restart=int(count), seconds=float(time.perf_counter() - start))
 
-    def add_seed_points(self, step: int, optimizers) -> Dict[str, float]:
+    def add_seed_points(self, step: int, optimizers) -> PointsOutcome:
         """`seed-points active`: triangulate the active views again (the round's new views with the earlier ones,
         whose features and matches the datamanager's workspace keeps) and add the points away from the splat as new
-        Gaussians. Returns `seed_points_added` and `seed_points_seconds`."""
+        Gaussians. Returns what it did."""
         dm, model = self.datamanager, self.model
         start = time.perf_counter()
         xyz, rgb, info = dm.triangulate_active()
@@ -416,7 +413,7 @@ class SelectionRounds:
             CONSOLE.print(f"seed points after round {len(dm.history)}: {xyz.shape[0]} triangulated from {len(dm.active)} "
                           f"views, {added} away from the splat added ({model.num_points} Gaussians, {seconds:.1f} s)")
         writer.put_scalar("selection/seed_points_added", added, step)
-        return {"seed_points_added": float(added), "seed_points_seconds": float(seconds)}
+        return PointsOutcome(added=int(added), seconds=float(seconds))
 
     @torch.no_grad()
     def test_psnr(self) -> float:
