@@ -107,12 +107,7 @@ class HpgsPipeline(VanillaPipeline):
         signature = selection.resume_signature(self.datamanager.config.seed)
         # the start as resolved (`auto` is colmap or active); checkpoints without it: trainer.check_resume_matches
         signature["seed-points"] = str(getattr(self.datamanager, "seed_points_mode", "colmap"))
-        if getattr(self.datamanager, "seed_points_mode", None) == "active":
-            # written since active starts restart by default: a checkpoint without it (0.3's) never restarted
-            signature["after-add.restart-active-starts"] = str(bool(selection.after_add.restart_active_starts))
-        elif not getattr(self.model, "random_start", True):
-            # a start from the capture's points: whether it restarts (a default that changed: before, it never did)
-            signature["after-add.restart-seeded-starts"] = str(bool(selection.after_add.restart_seeded_starts))
+        signature.update(selection.after_add.start_keys(signature["seed-points"], getattr(self.model, "random_start", True)))
         dm = self.datamanager
         start = RunStart(seed_points=signature["seed-points"], split_cameras=dm.train_dataset.cameras,
                          active_cameras=lambda: dm.active_cameras, training=training)

@@ -9,7 +9,7 @@ drops that and trains the views present then together, as from step 0, in the st
 from __future__ import annotations
 
 from dataclasses import dataclass, fields
-from typing import Iterable, Optional, Tuple
+from typing import Dict, Iterable, Optional, Tuple
 
 from hpgs_ns.errors import OptionError
 
@@ -69,6 +69,16 @@ class AfterAddConfig:
         if final_views is not None:
             counts = tuple(n for n in counts if initial_views < n <= final_views)
         return tuple(sorted(set(counts)))
+
+    def start_keys(self, seed_points: str, random_start: bool) -> Dict[str, str]:
+        """The resume signature's keys for the restart option the run's start reads (`seed_points` as resolved):
+        each was written once its default changed, so a checkpoint without it resumes as it trained
+        (`hpgs_ns.compat.seeded_restarts_key`)."""
+        if seed_points == "active":  # a checkpoint without it (0.3's) never restarted
+            return {"after-add.restart-active-starts": str(bool(self.restart_active_starts))}
+        if not random_start:  # the capture's points: before the default, such a start never restarted
+            return {"after-add.restart-seeded-starts": str(bool(self.restart_seeded_starts))}
+        return {}
 
     def describe(self, skip: Iterable[str] = ()) -> str:
         """The options that differ from the defaults, as flags (for the log, the start-up line and the resume check),

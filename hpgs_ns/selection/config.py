@@ -17,6 +17,7 @@ from typing import Dict, List, Optional, Tuple, Type
 from nerfstudio.configs.base_config import InstantiateConfig
 
 from hpgs_ns.errors import check_option
+from hpgs_ns.resume_keys import resume, signature_of
 from hpgs_ns.selection.after_add import AfterAddConfig
 from hpgs_ns.selectors import SelectorConfig, registry
 from hpgs_ns.selectors.registry import DEFAULT_SELECTOR, SelectorName, option_group, selector_names
@@ -34,15 +35,15 @@ class SelectionLoopConfig(InstantiateConfig):
     adds one option group per registered selector)."""
 
     _target: Type = field(default_factory=_rounds)
-    selector: SelectorName = DEFAULT_SELECTOR
+    selector: SelectorName = field(default=DEFAULT_SELECTOR, metadata=resume())
     """Which selector picks the next views (default: `farthest`, which beat the paper's human-preference selector `hpgs`
     on the twelve-scene benchmark, docs/results.md). Other packages add selectors through the `hpgs_ns.selectors`
     entry point group."""
-    select_every: int = 2000
+    select_every: int = field(default=2000, metadata=resume())
     """A selection round runs at steps select_every, 2*select_every, ... (never at step 0)."""
-    select_at: Tuple[int, ...] = ()
+    select_at: Tuple[int, ...] = field(default=(), metadata=resume(lambda v: str(list(v))))
     """Explicit round steps (e.g. FisherRF's 400 900 1500 ...); when given, select-every is ignored."""
-    views_per_round: int = 1
+    views_per_round: int = field(default=1, metadata=resume())
     """Views added per round (greedy batch selection when > 1)."""
     shortlist: Optional[SelectorName] = None
     """A selector that keeps its best shortlist-size share of the candidates each round; the chosen selector then
@@ -69,10 +70,12 @@ class SelectionLoopConfig(InstantiateConfig):
     `<run dir>/snapshots/step-NNNNNN/` (what `hpgs collect` labels). Test views are never rendered."""
     render_short_side: Optional[int] = None
     """Default render size (short side, pixels) for selectors that render views; None = dataset resolution."""
-    after_add: AfterAddConfig = field(default_factory=AfterAddConfig)
+    # restart-seeded-starts has its own key where it acts (the pipeline's), since its default changed
+    after_add: AfterAddConfig = field(default_factory=AfterAddConfig,
+                                      metadata=resume(lambda v: v.describe(skip=("restart_seeded_starts",))))
     """How training reacts to the views a round adds (`hpgs_ns.selection.after_add`): refinement window, opacity
     reset, learning-rate rewind. All off: 0.3's schedule, keyed to step 0."""
-    reset_after_add: bool = False
+    reset_after_add: bool = field(default=False, metadata=resume(lambda v: str(bool(v))))
     """After each round, start training over from the new view set, as FisherRF (Jiang et al., ECCV 2024) does:
     the Gaussians go back to the step-0 ones, optimizer moments, densification state and camera optimizer are
     cleared, and learning rates and splatfacto's step-keyed schedule (densification, opacity reset, SH degree,
@@ -91,14 +94,12 @@ class SelectionLoopConfig(InstantiateConfig):
         # before nerfstudio prints the config or makes a run folder. (A config.yml is read without __init__.)
         self.check_values()
 
-    def check_values(self, given_as: Optional[Dict[str, str]] = None) -> None:
-        """Raise `OptionError` naming the first option whose value makes no sense, by its flag. `given_as`: option
-        name -> the flag it was given as (the 0.2 spelling's, for values moved here); only those are checked then."""
+    def check_values(self) -> None:
+        """Raise `OptionError` naming the first option whose value makes no sense, by its flag."""
         for name, (ok, need, fix) in VALUE_RULES.items():
             value = getattr(self, name)
-            if value is not None and (given_as is None or name in given_as):
-                flag = (given_as or {}).get(name, f"--pipeline.selection.{name.replace('_', '-')}")
-                check_option(flag, value, ok(value), need, fix)
+            if value is not None:
+                check_option(f"--pipeline.selection.{name.replace('_', '-')}", value, ok(value), need, fix)
 
     def build_selector(self):
         """The run's selector: the chosen one, ranking the shortlist's share of the candidates when `shortlist` is
@@ -166,11 +167,7 @@ class SelectionLoopConfig(InstantiateConfig):
     def resume_signature(self, seed: int) -> Dict[str, str]:
         """What a resumed run must keep from its checkpoint ({option: value as text}): the selector, its options,
         the seed and the round schedule. max-rounds and the step count may grow (a longer run adds rounds)."""
-        signature = {"selector": str(self.selector), "seed": str(int(seed)), "select-every": str(self.select_every),
-                     "select-at": str(list(self.select_at)), "views-per-round": str(self.views_per_round),
-                     "reset-after-add": str(bool(self.reset_after_add)),
-                     # restart-seeded-starts has its own key where it acts (the pipeline's), since its default changed
-                     "after-add": self.after_add.describe(skip=("restart_seeded_starts",))}
+        signature = {"seed": str(int(seed)), **signature_of(self)}  # the fields marked `resume()`
         used = [self.selector]
         if self.uses_shortlist():  # keys only when set: older checkpoints match
             signature.update({"shortlist": str(self.shortlist), "shortlist-size": str(self.shortlist_size)})
