@@ -150,3 +150,10 @@ def strategy_states(extra_state: Dict[str, Any]) -> Dict[str, Dict[str, Any]]:
     if "strategies" in extra_state:
         return dict(extra_state["strategies"])
     return {"near-cull": {"culled": int(extra_state.get("near_culled", 0))}}
+
+
+def read_datamanager_state(config: Any) -> None:
+    """A datamanager config.yml of 0.4 or earlier may say `strict_init: true` (removed in 0.5): that run started from
+    the points two initial views see, as `seed-points colmap-initial` does now."""
+    if config.__dict__.pop("strict_init", False):
+        config.seed_points = "colmap-initial"

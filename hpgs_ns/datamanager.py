@@ -27,6 +27,7 @@ import torch
 from nerfstudio.data.datamanagers.full_images_datamanager import FullImageDatamanager, FullImageDatamanagerConfig
 from nerfstudio.utils.rich_utils import CONSOLE
 
+from hpgs_ns import compat
 from hpgs_ns.dataparser import DataParserUnion, MipNerf360DataParserConfig, SceneDataError, check_image_sizes, view_name
 from hpgs_ns.errors import UserError, check_option
 from hpgs_ns.selection.records import RoundRecord
@@ -75,8 +76,6 @@ class ActiveDatamanagerConfig(FullImageDatamanagerConfig):
     """`seed-points active`: fewer triangulated points than this and the splat starts from random points instead
     (one line naming the count), and a restart keeps its step-0 Gaussians. A few hundred accurate points seed a
     splat well; a handful, mostly from one pair of views, may not beat splatfacto's random start."""
-    strict_init: bool = False
-    """Deprecated: --pipeline.datamanager.seed-points colmap-initial."""
     def __post_init__(self) -> None:
         # tyro builds this config while it parses the command line: a value that makes no sense is a one-line error
         # before nerfstudio prints the config or makes a run folder. (A config.yml is read without __init__.)
@@ -97,6 +96,7 @@ class ActiveDatamanagerConfig(FullImageDatamanagerConfig):
         # A config.yml saved before an option group existed (PyYAML restores attributes, not __init__) gets that
         # group's defaults; plain-valued options already fall back to their class defaults.
         self.__dict__.update(state)
+        compat.read_datamanager_state(self)
         for f in fields(self):
             if f.name not in self.__dict__ and f.default_factory is not MISSING:
                 setattr(self, f.name, f.default_factory())
@@ -259,21 +259,12 @@ class ActiveDatamanager(FullImageDatamanager):
     # ---- seed points (`--pipeline.datamanager.seed-points`) ------------------------------------------------
 
     def _seed_points_mode(self) -> str:
-        """`seed-points`, with the deprecated `strict-init True` read as `colmap-initial`."""
+        """`seed-points` as given (`auto` is resolved by the caller, once it knows whether the capture has points)."""
         mode = self.config.seed_points
         if mode in ("active", "auto") and self.config.seed_points_min < 1:
             raise ActiveViewError(f"--pipeline.datamanager.seed-points-min {self.config.seed_points_min}: the fewest "
                                   "triangulated points to start from must be at least 1")
-        if not self.config.strict_init:
-            return mode
-        if mode == "auto":  # the old flag's "points seen by the initial views" needs a COLMAP model: read as it was
-            mode = "colmap"
-        if mode not in ("colmap", "colmap-initial"):
-            raise ActiveViewError(f"--pipeline.datamanager.strict-init True contradicts --pipeline.datamanager.seed-points {mode}; "
-                                  "drop strict-init")
-        CONSOLE.print("[yellow]--pipeline.datamanager.strict-init is deprecated: use --pipeline.datamanager.seed-points "
-                      "colmap-initial", soft_wrap=True, highlight=False)
-        return "colmap-initial"
+        return mode
 
     def _drop_seed_points(self) -> None:
         """No seed points: splatfacto then starts from its random points (as --pipeline.model.random-init True)."""
@@ -320,10 +311,8 @@ class ActiveDatamanager(FullImageDatamanager):
         from hpgs_ns.scenes.colmap_model import read_images, read_points3D
 
         parser = self.config.dataparser
-        # Errors name the option as it was given; `active` needs no tracks.
-        name = "strict-init" if self.config.strict_init else "seed-points colmap-initial"
-        drop = ("drop --pipeline.datamanager.strict-init" if self.config.strict_init
-                else "use --pipeline.datamanager.seed-points active (or colmap)")
+        # `active` needs no tracks
+        name, drop = "seed-points colmap-initial", "use --pipeline.datamanager.seed-points active (or colmap)"
         if not hasattr(parser, "colmap_path"):
             raise ActiveViewError(
                 f"{name} needs COLMAP point tracks (which images see each point), which only COLMAP scenes have "
@@ -358,7 +347,8 @@ class ActiveDatamanager(FullImageDatamanager):
             )
         for key in [k for k, v in meta.items() if k.startswith("points3D_") and torch.is_tensor(v) and v.shape[:1] == keep.shape]:
             meta[key] = meta[key][keep]
-        CONSOLE.print(f"strict init: kept {int(keep.sum())} of {keep.numel()} seed points seen by >= {min_views} initial views")
+        CONSOLE.print(f"seed-points colmap-initial: kept {int(keep.sum())} of {keep.numel()} seed points seen by >= "
+                      f"{min_views} initial views")
 
     # ---- what the trainer strategies see (`hpgs_ns.strategies`) -------------------------------------------------
 

@@ -182,10 +182,10 @@ def test_seed_points_on_a_capture_without_a_ply_say_only_what_they_do(fox, tmp_p
     assert lines[-1].startswith("seed points: ") and int(lines[-1].split()[2]) == num_points >= 100
 
 
-def test_strict_init_outside_colmap_is_a_one_line_error(fox, tmp_path):
-    cfg = short_config(fox, tmp_path, steps=4, strict_init=True)
+def test_colmap_initial_outside_colmap_is_a_one_line_error(fox, tmp_path):
+    cfg = short_config(fox, tmp_path, steps=4, seed_points="colmap-initial")
     cfg.pipeline.datamanager.dataparser = HpgsNerfstudioDataParserConfig(data=fox, downscale_factor=4)
-    with pytest.raises(ActiveViewError, match="strict-init needs COLMAP point tracks"):
+    with pytest.raises(ActiveViewError, match="seed-points colmap-initial needs COLMAP point tracks"):
         run_training(cfg)
 
 

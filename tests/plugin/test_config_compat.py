@@ -103,3 +103,12 @@ def test_a_0_4_checkpoint_keeps_the_guards_count():
 
     assert compat.strategy_states({"near_culled": 5}) == {"near-cull": {"culled": 5}}
     assert compat.strategy_states({"strategies": {"near-cull": {"culled": 2}}}) == {"near-cull": {"culled": 2}}
+
+
+def test_a_strict_init_config_yml_reads_as_colmap_initial():
+    from hpgs_ns.datamanager import ActiveDatamanagerConfig
+
+    text = yaml.dump(ActiveDatamanagerConfig()) + "strict_init: true\n"
+    config = yaml.load(text, Loader=yaml.UnsafeLoader)
+    assert config.seed_points == "colmap-initial" and "strict_init" not in config.__dict__
+    assert yaml.load(yaml.dump(ActiveDatamanagerConfig()) + "strict_init: false\n", Loader=yaml.UnsafeLoader).seed_points == "auto"

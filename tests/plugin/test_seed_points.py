@@ -1,6 +1,5 @@
 """`--pipeline.datamanager.seed-points`: where the splat's seed points come from (auto, colmap, colmap-initial,
-active, random), the Gaussians a round adds in `active` mode (`add_gaussians`), and `strict-init True` read as
-`colmap-initial`."""
+active, random) and the Gaussians a round adds in `active` mode (`add_gaussians`)."""
 
 from __future__ import annotations
 
@@ -165,16 +164,6 @@ def test_add_gaussians_grows_the_splat_its_optimizers_and_strategy_state(tiny_sc
     # training goes on with the grown splat: the new Gaussians get gradients and move
     train_steps(trainer, [2])
     assert model.num_points == n + k and model.strategy_state["grad2d"].shape[0] == n + k
-
-
-def test_strict_init_true_still_means_colmap_initial(tiny_scene, tmp_path, capsys):
-    strict = setup_trainer(short_config(tiny_scene, tmp_path / "strict", steps=1, rounds=0, strict_init=True))
-    out = capsys.readouterr().out
-    assert "strict-init is deprecated: use --pipeline.datamanager.seed-points colmap-initial" in " ".join(out.split())
-    initial = setup_trainer(short_config(tiny_scene, tmp_path / "new", steps=1, rounds=0, seed_points="colmap-initial"))
-    everything = setup_trainer(short_config(tiny_scene, tmp_path / "all", steps=1, rounds=0))
-    assert strict.pipeline.datamanager.seed_points_mode == "colmap-initial"
-    assert strict.pipeline.model.num_points == initial.pipeline.model.num_points < everything.pipeline.model.num_points
 
 
 def test_a_restart_in_active_mode_starts_from_what_the_active_views_triangulate(juicebox, tmp_path, spy):

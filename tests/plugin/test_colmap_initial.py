@@ -1,4 +1,5 @@
-"""`--pipeline.datamanager.strict-init`: the splat starts only from seed points that two initial views see."""
+"""`--pipeline.datamanager.seed-points colmap-initial`: the splat starts only from seed points that two initial views
+see."""
 
 from __future__ import annotations
 
@@ -18,10 +19,10 @@ def setup_trainer(scene, out, **dm):
     return trainer
 
 
-def test_strict_init_keeps_exactly_the_points_two_initial_views_see(tiny_scene, tmp_path):
+def test_colmap_initial_keeps_exactly_the_points_two_initial_views_see(tiny_scene, tmp_path):
     import pycolmap
 
-    trainer = setup_trainer(tiny_scene, tmp_path, strict_init=True)
+    trainer = setup_trainer(tiny_scene, tmp_path, seed_points="colmap-initial")
     dm = trainer.pipeline.datamanager
     rec = pycolmap.Reconstruction(str(tiny_scene / "sparse" / "0"))
     initial = {im_id for im_id, im in rec.images.items() if f"images/{im.name}" in {dm.image_names[i] for i in dm.active}}
@@ -46,12 +47,12 @@ def without_tracks(scene, out):
     return copy
 
 
-def test_strict_init_without_tracks_names_the_model_and_the_fix(tiny_scene, tmp_path):
+def test_colmap_initial_without_tracks_names_the_model_and_the_fix(tiny_scene, tmp_path):
     scene = without_tracks(tiny_scene, tmp_path / "no-tracks")
-    with pytest.raises(ActiveViewError, match=r"points3D has no point tracks .* drop --pipeline.datamanager.strict-init"):
-        setup_trainer(scene, tmp_path / "run", strict_init=True)
+    with pytest.raises(ActiveViewError, match=r"points3D has no point tracks .* use --pipeline.datamanager.seed-points active"):
+        setup_trainer(scene, tmp_path / "run", seed_points="colmap-initial")
 
 
-def test_strict_init_that_would_keep_nothing_says_so(tiny_scene, tmp_path):
-    with pytest.raises(ActiveViewError, match=r"strict-init kept no seed point: .* use more initial views"):
-        setup_trainer(tiny_scene, tmp_path, strict_init=True, num_initial_views=1)
+def test_colmap_initial_that_would_keep_nothing_says_so(tiny_scene, tmp_path):
+    with pytest.raises(ActiveViewError, match=r"seed-points colmap-initial kept no seed point: .* use more initial views"):
+        setup_trainer(tiny_scene, tmp_path, seed_points="colmap-initial", num_initial_views=1)
