@@ -41,7 +41,7 @@ from hpgs_lab import provenance
 from hpgs_lab.executors import ExecutorConfig, make_executor, runs_per_device
 from hpgs_lab.names import ALL, FINAL_SET, INITIAL, REFERENCES, is_reference
 from hpgs_lab.protocols import DEFAULT_SELECTORS, PROTOCOLS, Protocol, scaled
-from hpgs_lab.report import DEFAULT_RESULTS_PAGE, write_report
+from hpgs_lab.report import write_report
 from hpgs_lab.results import Metrics, Provenance, RoundPsnr, RunResult, SourceRun, Timing, ViewMetrics, start_label
 from hpgs_lab.stress import PerturbationName, StressConfig, perturbed_copy
 from hpgs_lab.suites import SYNTHETIC, Scene, load_suite, scene_from_folder
@@ -151,9 +151,6 @@ class Bench:
     results_page: Optional[Path] = None
     """Also write the results page (paired comparisons, repeat noise, throughput) to this markdown file, e.g.
     docs/results.md."""
-    readme: Optional[Path] = None
-    """Deprecated: use --results-page. Writes the results page (to --results-page, default docs/results.md);
-    the file named here is left alone."""
     stress: List[PerturbationName] = field(default_factory=list)
     """Also run every scene under these perturbations of its training views (copies in OUT/_scenes)."""
     stress_config: StressConfig = field(default_factory=StressConfig)
@@ -163,12 +160,6 @@ class Bench:
 
     def main(self) -> None:
         page = self.results_page
-        if self.readme is not None:
-            page = page or DEFAULT_RESULTS_PAGE
-            warnings.warn(f"hpgs bench: --readme is deprecated and no longer edits {self.readme}; the results page "
-                          f"goes to {page} (--results-page PATH)", DeprecationWarning, stacklevel=2)
-            CONSOLE.print(f"[yellow]hpgs bench: --readme is deprecated; writing the results page to {page} "
-                          "(--results-page PATH) and leaving the README alone")
         if not self.report_only:
             self.run_all(self.scene_list())  # its UserErrors (suite, scene, stress) print as one line
         if not any(self.out.glob("*/*/*/seed*.json")):

@@ -455,16 +455,11 @@ def write_report_page(out, page):
     return page.read_text()
 
 
-def test_readme_is_a_deprecated_alias_that_leaves_the_readme_alone(tmp_path, monkeypatch):
+def test_the_results_page_goes_where_results_page_says_and_an_empty_folder_is_one_line(tmp_path):
     out = tmp_path / "suite"
     write_rows(out, rows({"farthest": 0.7}, scenes=TWELVE, seeds=(0,)))
-    readme = tmp_path / "README.md"
-    readme.write_text("# mine\n")
-    monkeypatch.chdir(tmp_path)
-    with pytest.warns(DeprecationWarning, match="--readme is deprecated and no longer edits .*README.md"):
-        Bench(out=out, report_only=True, readme=readme).main()
-    assert readme.read_text() == "# mine\n"
-    text = (tmp_path / "docs" / "results.md").read_text()
+    Bench(out=out, report_only=True, results_page=tmp_path / "page.md").main()
+    text = (tmp_path / "page.md").read_text()
     assert "`farthest` beats `random`" in text and "| s1 | 60 | 9 | 0 |" in text
     with pytest.raises(UserError, match="no results under .*empty; run a sweep first"):
         Bench(out=tmp_path / "empty", report_only=True).main()
