@@ -9,6 +9,7 @@ classes in `hpgs_ns.trainer`, which YAML looks up there: the trainer re-exports 
 
 from __future__ import annotations
 
+from dataclasses import fields
 from typing import Any, Dict, List, Optional, Tuple
 
 # Options that moved from the datamanager to `--pipeline.selection` in 0.3: old name -> new name.
@@ -41,13 +42,17 @@ def take_datamanager_options(datamanager: Any, selection: Any) -> Dict[str, str]
     return moved
 
 
+def _new_selection(pipeline_config: type) -> Any:
+    """A fresh selection config of the pipeline config class `pipeline_config` (its `selection` field's default): this
+    module imports none of the classes whose old files it reads, so any of them can import it."""
+    return {f.name: f for f in fields(pipeline_config)}["selection"].default_factory()
+
+
 def read_pipeline_state(config: Any, state: dict) -> None:
     """`HpgsPipelineConfig.__setstate__`: a 0.2 config.yml has no `selection`; its options are the datamanager's."""
-    from hpgs_ns.selection.config import SelectionConfig
-
     config.__dict__.update(state)
     if "selection" not in state:
-        config.selection = SelectionConfig()
+        config.selection = _new_selection(type(config))
     take_datamanager_options(config.datamanager, config.selection)
 
 
@@ -57,12 +62,10 @@ def upgrade_pipeline_config(config: Any, pipeline_config: type) -> bool:
     it changed."""
     from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 
-    from hpgs_ns.datamanager import ActiveDatamanagerConfig
-    from hpgs_ns.selection.config import SelectionConfig
-
     pipeline = config.pipeline
-    if type(pipeline) is VanillaPipelineConfig and isinstance(pipeline.datamanager, ActiveDatamanagerConfig):
-        selection = SelectionConfig()
+    # the hpgs datamanager's config (0.1 kept the rounds' options there), named by a field only it has
+    if type(pipeline) is VanillaPipelineConfig and hasattr(pipeline.datamanager, "num_initial_views"):
+        selection = _new_selection(pipeline_config)
         take_datamanager_options(pipeline.datamanager, selection)
         config.pipeline = pipeline_config(datamanager=pipeline.datamanager, model=pipeline.model, selection=selection)
         return True

@@ -5,7 +5,7 @@
 #   PILOT="--suite tune6 --protocols fisherrf --step-scale 0.5 --selectors random hpgs --final-set all \
 #          --no-references --runs-per-gpu 12" \
 #   bash scripts/device_arm_sweeps.sh GPU OUT ARM 'EXTRA ARGS' SEED [SEED ...]
-# e.g. bash scripts/device_arm_sweeps.sh 3 /tmp/extra age '--pipeline.model.sh-degree-by-age True' 0 1 2
+# e.g. bash scripts/device_arm_sweeps.sh 0 /tmp/extra w0.05 '--pipeline.model.depth-loss.weight 0.05' 0 1 2
 # DRY=1 prints the sweeps instead of running them.
 set -u
 gpu=$1 out=$2 arm=$3 extra=$4

@@ -208,15 +208,16 @@ def test_the_lab_check_sees_an_import_of_the_lab(tmp_path):
 # belongs to the longest prefix listed.
 LAYERS = (
     ("utilities", ("hpgs_ns.errors", "hpgs_ns.atomic_write", "hpgs_ns.image_files", "hpgs_ns.metrics", "hpgs_ns.offline_weights",
-                   "hpgs_ns.ns_train", "hpgs_ns.schedules")),
+                   "hpgs_ns.ns_train", "hpgs_ns.schedules", "hpgs_ns.resume_keys", "hpgs_ns.provenance")),
     ("rendering and scenes", ("hpgs_ns.cpu_raster", "hpgs_ns.render", "hpgs_ns.scenes", "hpgs_ns.dataparser")),
     ("preference model", ("hpgs_ns.preference",)),
     ("selectors", ("hpgs_ns.selectors",)),
     ("trainer strategies", ("hpgs_ns.strategies",)),
-    ("round records", ("hpgs_ns.selection.records", "hpgs_ns.selection.schedule")),
+    # the migrations of old configs and checkpoints: every config class reads its old files through it
+    ("round records and compatibility", ("hpgs_ns.selection.records", "hpgs_ns.selection.schedule", "hpgs_ns.compat")),
     ("training parts", ("hpgs_ns.model", "hpgs_ns.datamanager", "hpgs_ns.viewer")),
     ("selection loop", ("hpgs_ns.selection",)),
-    ("pipeline", ("hpgs_ns.pipeline", "hpgs_ns.compat")),
+    ("pipeline", ("hpgs_ns.pipeline",)),
     ("trainer", ("hpgs_ns.trainer",)),
     ("method", ("hpgs_ns.method_config", "hpgs_ns.run_config")),
     ("commands", ("hpgs_ns", "hpgs_ns.cli", "hpgs_ns.demo", "hpgs_ns.suggest")),
