@@ -160,3 +160,16 @@ def read_datamanager_state(config: Any) -> None:
     the points two initial views see, as `seed-points colmap-initial` does now."""
     if config.__dict__.pop("strict_init", False):
         config.seed_points = "colmap-initial"
+
+
+def view_names_now(saved: Optional[List[str]], names: List[str]) -> Optional[Dict[str, str]]:
+    """A datamanager checkpoint's view names (`saved`) against the split's now (`names`): {} when they are the same,
+    {saved name: name now} for a checkpoint of 0.1 (bare file names), None when they belong to another scene or split."""
+    if saved == names:
+        return {}
+    from pathlib import Path
+
+    by_file = {Path(n).name: n for n in names}
+    if saved == [Path(n).name for n in names]:
+        return by_file
+    return None

@@ -434,20 +434,17 @@ class ActiveDatamanager(FullImageDatamanager):
         return state
 
     def set_extra_state(self, state: Dict[str, Any]) -> None:
-        saved = state.get("image_names")
-        # hpgs-ns 0.1 saved bare file names
-        if saved != self.image_names and saved != [Path(n).name for n in self.image_names]:
+        renamed = compat.view_names_now(state.get("image_names"), self.image_names)
+        if renamed is None:
             raise ActiveViewError(
                 "checkpoint's active views belong to a different scene or split; pass the --data it was trained on"
             )
         self.active = [int(i) for i in state["active"]]
         self.history = [RoundRecord.from_dict(record) for record in state["history"]]
         self.loaded_selection_signature = state.get("selection")
-        if saved != self.image_names:  # 0.1 names in the round log: the views' names now
-            by_file = {Path(n).name: n for n in self.image_names}
-            for record in self.history:
-                record.chosen = [by_file[n] for n in record.chosen]
-                record.scores = {by_file[n]: v for n, v in record.scores.items()}
+        for record in self.history if renamed else []:  # the round log in the views' names now
+            record.chosen = [renamed[n] for n in record.chosen]
+            record.scores = {renamed[n]: v for n, v in record.scores.items()}
         if "generator" in state:
             self.generator.set_state(state["generator"])
         unseen = [int(i) for i in state.get("train_unseen", [])]

@@ -112,3 +112,12 @@ def test_a_strict_init_config_yml_reads_as_colmap_initial():
     config = yaml.load(text, Loader=yaml.UnsafeLoader)
     assert config.seed_points == "colmap-initial" and "strict_init" not in config.__dict__
     assert yaml.load(yaml.dump(ActiveDatamanagerConfig()) + "strict_init: false\n", Loader=yaml.UnsafeLoader).seed_points == "auto"
+
+
+def test_a_checkpoints_view_names_map_to_the_splits_names_now():
+    from hpgs_ns.compat import view_names_now
+
+    names = ["images/a.png", "images/b.png"]
+    assert view_names_now(names, names) == {}
+    assert view_names_now(["a.png", "b.png"], names) == {"a.png": "images/a.png", "b.png": "images/b.png"}  # 0.1's
+    assert view_names_now(["a.png", "c.png"], names) is None and view_names_now(None, names) is None
