@@ -7,6 +7,7 @@ import sys
 import textwrap
 import urllib.request
 from pathlib import Path
+from typing import Iterator
 
 import pytest
 
@@ -218,7 +219,7 @@ TOY = textwrap.dedent('''
 
 
 @pytest.fixture
-def toy_plugin(tmp_path, monkeypatch) -> Path:
+def toy_plugin(tmp_path, monkeypatch) -> Iterator[Path]:
     """An installed package `toy_selector` whose entry point registers the selector `last`."""
     (tmp_path / "toy_selector.py").write_text(TOY)
     info = tmp_path / "toy_selector-0.1.dist-info"
@@ -226,4 +227,7 @@ def toy_plugin(tmp_path, monkeypatch) -> Path:
     (info / "METADATA").write_text("Metadata-Version: 2.1\nName: toy-selector\nVersion: 0.1\n")
     (info / "entry_points.txt").write_text("[hpgs_ns.selectors]\nlast = toy_selector:LastSelectorConfig\n")
     monkeypatch.syspath_prepend(str(tmp_path))
-    return tmp_path
+    # an earlier test's copy, imported from its own folder, must not stand in for this one (nor outlive this test)
+    monkeypatch.delitem(sys.modules, "toy_selector", raising=False)
+    yield tmp_path
+    sys.modules.pop("toy_selector", None)
