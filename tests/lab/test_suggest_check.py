@@ -4,23 +4,17 @@ tests/plugin/test_suggest.py.)"""
 
 from __future__ import annotations
 
-import importlib
 import math
-import sys
 
 import pytest
 import torch
 from conftest import REPO, model_trainer
+from helpers import load_script
 
 
 @pytest.fixture(scope="module")
 def check():
-    """The script as a module (its dataclasses need it in sys.modules, hence an import from benchmarks/)."""
-    sys.path.insert(0, str(REPO / "benchmarks"))
-    try:
-        yield importlib.import_module("suggest_check")
-    finally:
-        sys.path.remove(str(REPO / "benchmarks"))
+    return load_script(REPO / "benchmarks" / "suggest_check.py")
 
 
 def look_at(centre: torch.Tensor) -> torch.Tensor:

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import torch
 from conftest import require_shared
+from helpers import look_at_cameras, two_views_of_points
 from PIL import Image
 
 from hpgs_ns.scenes.triangulate import (
@@ -20,29 +21,12 @@ from hpgs_ns.scenes.triangulate import (
     colmap_cam_from_world,
     colmap_camera_model,
     epipolar_distance,
-    relative_pose,
     seed_points,
     triangulate_views,
     view_pairs,
 )
 
 JUICEBOX_VIEWS = 8
-
-
-def look_at_cameras(num: int, width: int = 320, height: int = 240, **kwargs):
-    """`num` nerfstudio cameras on a ring of radius 3 looking at the origin (OpenGL: z points back, away from it)."""
-    from nerfstudio.cameras.cameras import Cameras
-
-    c2ws = []
-    for k in range(num):
-        angle = 2 * np.pi * k / num
-        centre = np.array([3 * np.cos(angle), 3 * np.sin(angle), 0.8])
-        back = centre / np.linalg.norm(centre)
-        right = np.cross([0.0, 0.0, 1.0], back)
-        right /= np.linalg.norm(right)
-        c2ws.append(np.stack([right, np.cross(back, right), back, centre], 1))
-    return Cameras(camera_to_worlds=torch.tensor(np.array(c2ws), dtype=torch.float32), fx=250.0, fy=240.0,
-                   cx=width / 2 + 3.5, cy=height / 2 - 2.0, width=width, height=height, **kwargs)
 
 
 @pytest.mark.parametrize("kind,distortion", [
@@ -67,23 +51,6 @@ def test_a_point_on_a_nerfstudio_ray_projects_back_to_its_pixel_in_colmap(kind, 
         assert (in_camera[:, 2] > 0).all()  # COLMAP's z looks forward
         projected = np.stack([camera.img_from_cam(p) for p in in_camera])
         assert np.abs(projected - pixels.flip(-1).numpy()).max() < 0.05, (model, projected)
-
-
-def two_views_of_points(num: int = 50):
-    """(pycolmap cameras [2], cam2_from_cam1, pixels [2] of [num, 2]): `num` random 3D points seen by two distorted
-    views 45 degrees apart on the ring."""
-    import pycolmap
-
-    cameras = look_at_cameras(8, distortion_params=torch.tensor([[0.05, -0.02, 0.0, 0.0, 0.001, -0.002]] * 8))
-    a, b = 0, 1
-    points = np.random.default_rng(0).uniform(-0.6, 0.6, (num, 3))
-    pixels, colmap_cameras = [], []
-    for i in (a, b):
-        model, width, height, params = colmap_camera_model(cameras, i)
-        colmap_cameras.append(pycolmap.Camera(model=model, width=width, height=height, params=params))
-        cam_from_world = pycolmap.Rigid3d(colmap_cam_from_world(cameras.camera_to_worlds[i]))
-        pixels.append(np.stack([colmap_cameras[-1].img_from_cam(cam_from_world * p) for p in points]))
-    return colmap_cameras, relative_pose(cameras.camera_to_worlds[a], cameras.camera_to_worlds[b]), pixels
 
 
 def test_known_pose_verification_keeps_true_matches_and_drops_a_planted_wrong_one():
