@@ -162,7 +162,6 @@ class HpgsSplatfactoModel(SplatfactoModel):
                                                         in self.config.strategy_configs().items() if options.active()}
         """The trainer strategies this run uses, by registered name (`hpgs_ns.strategies`; those off, e.g. weight 0,
         are not built)."""
-        self.trainer_strategies: List[Strategy] = list(self.strategies_by_name.values())
         if colours is not None:
             dc = self.gauss_params["features_dc"]
             if self.config.sh_degree > 0:
@@ -177,6 +176,11 @@ class HpgsSplatfactoModel(SplatfactoModel):
             for name, params in self.get_param_groups().items()
             if name not in self.gauss_params
         }
+
+    @property
+    def trainer_strategies(self) -> List[Strategy]:
+        """The strategies this run uses, in the registry's order (none before `populate_modules`)."""
+        return list(getattr(self, "strategies_by_name", {}).values())
 
     @property
     def active_sh_degree(self) -> Optional[int]:
@@ -373,12 +377,12 @@ class HpgsSplatfactoModel(SplatfactoModel):
 
     def after_views_added(self, views: ActiveViews) -> None:
         """Tell the strategies the active views now (at the start of training and after each round)."""
-        for strategy in getattr(self, "trainer_strategies", []):
+        for strategy in self.trainer_strategies:
             strategy.after_views_added(self, views)
 
     def get_loss_dict(self, outputs, batch, metrics_dict=None) -> Dict[str, torch.Tensor]:
         loss_dict = super().get_loss_dict(outputs, batch, metrics_dict)
-        strategies = getattr(self, "trainer_strategies", []) if self.training else []
+        strategies = self.trainer_strategies if self.training else []
         step = int(self.step + self.step_offset)
         for strategy in strategies:
             loss_dict.update(strategy.loss(self, outputs, batch, step))
@@ -396,7 +400,7 @@ class HpgsSplatfactoModel(SplatfactoModel):
                                                          f"{self.step_offset}):", line))
         else:
             super().step_post_backward(step - self.step_offset)
-        for strategy in getattr(self, "trainer_strategies", []):
+        for strategy in self.trainer_strategies:
             strategy.post_backward(self, step)
 
     def is_refine_step(self) -> bool:

@@ -113,12 +113,8 @@ class HpgsPipeline(VanillaPipeline):
                          active_cameras=lambda: dm.active_cameras, training=training)
         for name, strategy in getattr(self.model, "strategies_by_name", {}).items():
             kept = strategy.at_start(self.model, start)
-            if kept is not None:  # what a resumed run must keep (the floater guard's bounds as resolved)
+            if kept is not None:  # what a resumed run must keep (off: the signature stays as it was)
                 signature[name] = kept
-        strategies = getattr(config.model, "strategy_configs", None)
-        for name, options in (strategies() if strategies is not None else {}).items():
-            if options.describe() is not None:  # a strategy that acts (off: the signature stays as it was)
-                signature[name] = options.describe()
         self.datamanager.selection_signature = signature
         self.rounds: Optional[SelectionRounds] = selection.setup(datamanager=self.datamanager, model=self.model) if training else None
         self.snapshots: Optional[Snapshots] = Snapshots(selection.snapshot_every, self.datamanager, self.model) if training else None

@@ -3,8 +3,8 @@ object with the hooks below, all no-ops by default, as gsplat's densification st
 and `step_post_backward`. The model (`HpgsSplatfactoModel`) builds the active ones from `registry` and calls:
 
 - `at_start(model, start)`: once the pipeline has set the run up (`RunStart`: the start as resolved, the training
-  split's cameras); returns what a resumed run must keep of it as text (None: nothing), and says at start what it
-  will do, or that it does nothing;
+  split's cameras); returns what a resumed run must keep of it as text (None: nothing; by default its config's
+  `describe()`), and says at start what it will do, or that it does nothing;
 - `after_views_added(model, views)`: at the start of training and after each selection round (once the round's
   own follow-up, e.g. `seed-points active`'s triangulation, is done), with the datamanager's `ActiveViews`;
 - `loss(model, outputs, batch, step)`: extra loss terms, merged into `get_loss_dict` (nerfstudio sums them);
@@ -85,7 +85,8 @@ class Strategy:
     render_depth: bool = False
 
     def at_start(self, model: Any, start: RunStart) -> Optional[str]:
-        return None
+        config = getattr(self, "config", None)  # what its options say a resumed run must keep
+        return config.describe() if isinstance(config, StrategyConfig) else None
 
     def after_views_added(self, model: Any, views: ActiveViews) -> None:
         return None
