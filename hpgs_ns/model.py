@@ -256,13 +256,6 @@ class HpgsSplatfactoModel(SplatfactoModel):
                     images += [self.render_rgb_batch(chunk[k : k + 1])[0] for k in range(chunk.shape[0])]
         return images
 
-    @torch.no_grad()
-    def render_with_depth(self, camera: Cameras) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Eval-mode render of one camera ([1]) at its size: (rgb [H, W, 3] over the eval background, expected
-        z-depth [H, W, 1], alpha [H, W, 1])."""
-        rgb, render, alpha = self._eval_render(camera, "RGB+ED")
-        return rgb[0], render[0, ..., 3:4], alpha[0]
-
     def splat(self) -> Splat:
         """The Gaussians as plain detached tensors and how they are rendered now (for `render.pair_render`)."""
         return Splat(
