@@ -120,7 +120,8 @@ class Bench:
     rasterizer: Literal["auto", "gsplat", "cpu"] = "auto"
     """Rasterizer for all runs."""
     reset_after_add: bool = False
-    """Reset the model and its schedules after each added view (FisherRF); results go under `<protocol>-reset`."""
+    """Reset the model and its schedules after each added view (FisherRF; `--pipeline.model.restarts.every-round`);
+    results go under `<protocol>-reset`."""
     strict_init: bool = False
     """Start from seed points seen by two initial views only (`--pipeline.datamanager.seed-points colmap-initial`; needs
     COLMAP tracks); results go under `<protocol>-strict`."""
@@ -382,8 +383,6 @@ def train_args(bench: Bench, job: Job, run_root: Path) -> List[str]:
         selection["select-at"] = protocol.select_at
     else:
         selection["select-every"] = protocol.select_every
-    if bench.reset_after_add:
-        selection["reset-after-add"] = True
     if bench.strict_init:
         datamanager["seed-points"] = "colmap-initial"
     if bench.stop_when_gain_below is not None and not is_reference(name):
@@ -397,7 +396,8 @@ def train_args(bench: Bench, job: Job, run_root: Path) -> List[str]:
         job.scene.path, run_root, job.scene.name, job.run_folder(run_root).name, protocol.steps,
         # ns-eval's JSON, written by the training process (hpgs_ns/trainer.py): no second start-up per run
         trainer={"machine.seed": seed, "final-eval-json": job.run_folder(run_root) / "eval.json"},
-        datamanager=datamanager, selection=selection, model={"rasterizer": bench.rasterizer},
+        datamanager=datamanager, selection=selection,
+        model={"rasterizer": bench.rasterizer, **({"restarts.every-round": True} if bench.reset_after_add else {})},
         extra=shlex.split(bench.extra_args), dataparser=job.scene.dataparser, dataparser_options=job.scene.option_dict(),
     )
 

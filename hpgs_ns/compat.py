@@ -4,13 +4,17 @@
 those options still on the datamanager (`--pipeline.datamanager.selector`, ...). 0.3 moved them to
 `--pipeline.selection.*`; 0.4 dropped the old command-line spelling and keeps reading the old config.yml files here,
 so `ns-eval`, `ns-viewer` and `--load-config` open old runs. (config.yml files of 0.1 also name two scheduler
-classes in `hpgs_ns.trainer`, which YAML looks up there: the trainer re-exports them.)
+classes in `hpgs_ns.trainer`, which YAML looks up there: the trainer re-exports them.) 0.5 moved the restarts from
+`--pipeline.selection.after-add.*` and `reset-after-add` to the model's `--pipeline.model.restarts.*`
+(`move_restarts`); their resume keys kept their names.
 """
 
 from __future__ import annotations
 
 from dataclasses import fields
 from typing import Any, Dict, List, Optional, Tuple
+
+import yaml
 
 # Options that moved from the datamanager to `--pipeline.selection` in 0.3: old name -> new name.
 MOVED_FROM_DATAMANAGER: Dict[str, str] = {
@@ -48,12 +52,46 @@ def _new_selection(pipeline_config: type) -> Any:
     return {f.name: f for f in fields(pipeline_config)}["selection"].default_factory()
 
 
+# 0.4's restart options (`--pipeline.selection.after-add.*`, a class of their own) -> the fields of the model's
+# `restarts` group; the class is gone, so its config.yml tag reads as a plain mapping.
+OLD_AFTER_ADD_TAG = "tag:yaml.org,2002:python/object:hpgs_ns.selection.after_add.AfterAddConfig"
+RESTART_FIELDS: Dict[str, str] = {"restart_at_views": "at_views", "restart_random_starts": "random_starts",
+                                  "restart_active_starts": "active_starts", "restart_seeded_starts": "seeded_starts"}
+
+
+def _old_after_add(loader: yaml.Loader, node: yaml.Node) -> Dict[str, Any]:
+    return dict(loader.construct_mapping(node, deep=True))
+
+
+for _loader in (yaml.Loader, yaml.UnsafeLoader):
+    yaml.add_constructor(OLD_AFTER_ADD_TAG, _old_after_add, Loader=_loader)
+
+
+def move_restarts(selection: Any, model: Any) -> None:
+    """A config.yml of 0.4 or before: its selection's `after_add` and `reset_after_add` into the model's
+    `restarts` group (fields 0.5 removed are dropped; the model config has read the group's defaults already)."""
+    state = getattr(selection, "__dict__", {})
+    after_add, every_round = state.pop("after_add", None), state.pop("reset_after_add", None)
+    restarts = getattr(model, "restarts", None)
+    if restarts is None:
+        return
+    old = after_add if isinstance(after_add, dict) else getattr(after_add, "__dict__", {})
+    for name, new in RESTART_FIELDS.items():
+        if name in old:
+            value = old[name]
+            setattr(restarts, new, tuple(int(n) for n in value) if name == "restart_at_views" else bool(value))
+    if every_round is not None:
+        restarts.every_round = bool(every_round)
+
+
 def read_pipeline_state(config: Any, state: dict) -> None:
-    """`HpgsPipelineConfig.__setstate__`: a 0.2 config.yml has no `selection`; its options are the datamanager's."""
+    """`HpgsPipelineConfig.__setstate__`: a 0.2 config.yml has no `selection`; its options are the datamanager's;
+    before 0.5 the restarts were the selection's."""
     config.__dict__.update(state)
     if "selection" not in state:
         config.selection = _new_selection(type(config))
     take_datamanager_options(config.datamanager, config.selection)
+    move_restarts(config.selection, getattr(config, "model", None))
 
 
 def upgrade_pipeline_config(config: Any, pipeline_config: type) -> bool:
@@ -67,6 +105,7 @@ def upgrade_pipeline_config(config: Any, pipeline_config: type) -> bool:
     if type(pipeline) is VanillaPipelineConfig and hasattr(pipeline.datamanager, "num_initial_views"):
         selection = _new_selection(pipeline_config)
         take_datamanager_options(pipeline.datamanager, selection)
+        move_restarts(selection, pipeline.model)
         config.pipeline = pipeline_config(datamanager=pipeline.datamanager, model=pipeline.model, selection=selection)
         return True
     return False
@@ -121,6 +160,20 @@ def seeded_restarts_key(saved: Dict[str, str], now: Dict[str, str]) -> Dict[str,
     if SEEDED_RESTARTS in now and SEEDED_RESTARTS not in saved:
         out[SEEDED_RESTARTS] = flag.split(" ", 1)[1]
     return out
+
+
+def restart_flags(key: str, saved: Optional[str]) -> str:
+    """The `--pipeline.model.restarts.*` flags that give a checkpoint's restart key back (the keys keep 0.4's
+    names: `after-add`, `reset-after-add`, `after-add.restart-{active,seeded}-starts`)."""
+    flag = "--pipeline.model.restarts."
+    if key == "reset-after-add":
+        return f"{flag}every-round {saved or 'False'}"
+    if key.startswith("after-add.restart-"):
+        return f"{flag}{key[len('after-add.restart-'):]} {saved or 'True'}"
+    words = [] if saved in (None, "off") else saved.split(", ")
+    if not words:
+        return f"no {flag}at-views, random-starts False or active-starts False"
+    return " ".join(flag + w[len("restart-"):] for w in words)
 
 
 def near_cull_flags(saved: Optional[str]) -> str:

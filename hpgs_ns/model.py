@@ -17,7 +17,7 @@ stock splatfacto's `get_outputs` (a CPU test).
 It also owns what the selection rounds and the selectors need of rendering: eval-mode batched renders
 (`render_views`), `eval_mode()`, the active SH degree, the resolved rasterizer, and the splat as plain tensors
 (`splat()`, for FisherRF's pair renders); it can go back to its step-0 state mid-run (`reset_to_initial`, for
-`reset-after-add` and the restarts), and it calls its trainer strategies' hooks (`hpgs_ns.strategies`).
+the restarts strategy), and it calls its trainer strategies' hooks (`hpgs_ns.strategies`).
 """
 
 from __future__ import annotations
@@ -42,7 +42,7 @@ from hpgs_ns.render.pair_render import Splat
 from hpgs_ns.render.rasterize import composite, rasterize_splat
 from hpgs_ns.render.viewmats import world_to_camera
 from hpgs_ns.strategies import registry as strategy_registry
-from hpgs_ns.strategies.base import ActiveViews, RenderedView, Strategy, StrategyConfig
+from hpgs_ns.strategies.base import ActiveViews, RenderedView, RoundAdded, RoundsPlan, Strategy, StrategyConfig
 
 
 class RasterizerUnavailableError(UserError, RuntimeError):
@@ -149,8 +149,8 @@ class HpgsSplatfactoModel(SplatfactoModel):
         colours = None
         seeded = seed_points is not None and not self.config.random_init and seed_points[1].shape[0] > 0
         self.random_start = not seeded
-        """Started from splatfacto's random cube (no point cloud, random-init, or seed-points random): after-add
-        restart-random-starts reads it."""
+        """Started from splatfacto's random cube (no point cloud, random-init, or seed-points random): the restarts'
+        random-starts reads it."""
         if seeded:
             # Splatfacto builds seed colours with `.cuda()`; hand it none and set them below on any device.
             colours = seed_points[1]
@@ -189,7 +189,7 @@ class HpgsSplatfactoModel(SplatfactoModel):
             return None
         return min(self.step // self.clocked(self.config.sh_degree_interval), self.config.sh_degree)
 
-    # ---- the step-keyed schedule's speed (after-add restarts) ------------------------------------------
+    # ---- the step-keyed schedule's speed (restarts) -----------------------------------------------------
 
     clock_scale: float = 1.0
     """Every step count of splatfacto's schedule (densification start, interval and stop, opacity-reset interval,
@@ -353,7 +353,7 @@ class HpgsSplatfactoModel(SplatfactoModel):
         self.initial_gaussians = {k: v.detach().cpu().clone() for k, v in self.gauss_params.items()}
         return added
 
-    # ---- reset to step 0 (reset-after-add) -----------------------------------------------------------------
+    # ---- reset to step 0 (restarts) ------------------------------------------------------------------------
 
     def keep_initial_for_resets(self) -> None:
         """Save the step-0 Gaussians in checkpoints from now on (resets may still come), so a resumed run resets
@@ -367,6 +367,16 @@ class HpgsSplatfactoModel(SplatfactoModel):
 
     last_view: Optional[RenderedView] = None
     """The camera of the last training render (set only while strategies run)."""
+
+    def plan_rounds(self, plan: RoundsPlan) -> None:
+        """Tell the strategies the rounds this run will run (as training starts)."""
+        for strategy in self.trainer_strategies:
+            strategy.plan(self, plan)
+
+    def after_round(self, added: RoundAdded) -> List[Any]:
+        """Tell the strategies a round's views were added; what each did (the outcomes that are not None)."""
+        outcomes = [strategy.after_round(self, added) for strategy in self.trainer_strategies]
+        return [outcome for outcome in outcomes if outcome is not None]
 
     def after_views_added(self, views: ActiveViews) -> None:
         """Tell the strategies the active views now (at the start of training and after each round)."""

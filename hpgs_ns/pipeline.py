@@ -107,13 +107,14 @@ class HpgsPipeline(VanillaPipeline):
         signature = selection.resume_signature(self.datamanager.config.seed)
         # the start as resolved (`auto` is colmap or active); checkpoints without it: trainer.check_resume_matches
         signature["seed-points"] = str(getattr(self.datamanager, "seed_points_mode", "colmap"))
-        signature.update(selection.after_add.start_keys(signature["seed-points"], getattr(self.model, "random_start", True)))
         dm = self.datamanager
         start = RunStart(seed_points=signature["seed-points"], split_cameras=dm.train_dataset.cameras,
                          active_cameras=lambda: dm.active_cameras, training=training)
         for name, strategy in getattr(self.model, "strategies_by_name", {}).items():
             kept = strategy.at_start(self.model, start)
-            if kept is not None:  # what a resumed run must keep (off: the signature stays as it was)
+            if isinstance(kept, dict):  # under keys of its own (the restarts: those checkpoints have always held)
+                signature.update(kept)
+            elif kept is not None:  # what a resumed run must keep (off: the signature stays as it was)
                 signature[name] = kept
         self.datamanager.selection_signature = signature
         self.rounds: Optional[SelectionRounds] = selection.setup(datamanager=self.datamanager, model=self.model) if training else None

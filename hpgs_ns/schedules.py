@@ -6,7 +6,7 @@ splatfacto's scheduler returns numpy float64, which ends up in the optimizer and
 `ns-viewer` and resume.
 
 `restart_schedules` makes every learning rate start over as if training began at the current step (the
-selection rounds' `reset-after-add`), optionally squeezed into the steps a run has left (`after-add.restart-at-views`).
+restarts' `every-round`), optionally squeezed into the steps a run has left (a restart at a view count).
 """
 
 from __future__ import annotations

@@ -327,7 +327,7 @@ def resize_loaded_schedules(optimizers, sizes: Dict[str, List[int]]) -> Optional
     """After a resume: the schedules restored from the checkpoint (LambdaLR's state keeps its multiplier, sized to
     the run the checkpoint was saved in) are re-sized to `sizes` (this run's, from `--max-num-iterations`), so an
     extended run follows the schedule of an uninterrupted run of its length from the loaded step on; the current
-    learning rates move to it at once. A schedule squeezed by a restart (`after-add`) keeps its start and now ends at
+    learning rates move to it at once. A schedule squeezed by a restart (`restarts`) keeps its start and now ends at
     the new last step, as the uninterrupted run's restart squeezed it. Returns (old, new) decay length of the first
     schedule changed, or None."""
     changed = None
@@ -355,7 +355,7 @@ def resize_loaded_schedules(optimizers, sizes: Dict[str, List[int]]) -> Optional
 def follow_restart_clock(model, end_step: int) -> None:
     """After a resume: a model whose restart squeezed its step-keyed schedule into the steps the run had left
     (`clock_scale` < 1, from the restart's step `step_offset`) squeezes it into the steps this run has left, as the
-    restart of an uninterrupted run of `end_step` steps did (`SelectionRounds.reset_model`); a resume that extends
+    restart of an uninterrupted run of `end_step` steps did (`strategies.restarts.Restarts.reset`); a resume that extends
     the run otherwise densifies on the old run's clock."""
     scale, restart = float(getattr(model, "clock_scale", 1.0)), int(getattr(model, "step_offset", 0))
     if scale != 1.0 and 0 < restart and hasattr(model, "set_clock_scale"):
@@ -413,8 +413,9 @@ def check_resume_matches(pipeline) -> None:
                      + (": the default was hpgs before farthest" if saved["selector"] == "hpgs" else "") + ")")
         if "near-cull" in changed:
             hint += f" ({compat.near_cull_flags(saved.get('near-cull'))})"
-        if compat.SEEDED_RESTARTS in changed and saved.get(compat.SEEDED_RESTARTS) == "False":
-            hint += " (--pipeline.selection.after-add.restart-seeded-starts False: seeded starts did not restart before)"
+        for key in (k for k in changed if k == "reset-after-add" or k.startswith("after-add")):
+            hint += f" ({compat.restart_flags(key, saved.get(key))}"
+            hint += ": seeded starts did not restart before)" if key == compat.SEEDED_RESTARTS and saved.get(key) == "False" else ")"
         raise CheckpointError(f"this resume changes what the checkpoint was trained with ({diff}); resume with the "
                               f"checkpoint's options{hint}, or start a new run without --load-dir")
 

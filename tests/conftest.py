@@ -38,7 +38,7 @@ def tiny_scene(tmp_path_factory) -> Path:
 
 def short_config(scene: Path, out: Path, steps: int = 60, every: int = 20, rounds: int = 2, initial: int = 6, **options):
     """An `hpgs` trainer config scaled down for tests (CPU rasterizer, tensorboard, no viewer); `options` are
-    `--pipeline.selection.*` or `--pipeline.datamanager.*` options by field name."""
+    `--pipeline.selection.*` or `--pipeline.datamanager.*` options by field name (a name neither has: TypeError)."""
     from hpgs_ns.method_config import hpgs_trainer_config
 
     cfg = hpgs_trainer_config(steps)
@@ -60,6 +60,8 @@ def short_config(scene: Path, out: Path, steps: int = 60, every: int = 20, round
     d, selection = cfg.pipeline.datamanager, cfg.pipeline.selection
     d.num_initial_views, selection.select_every, selection.max_rounds = initial, every, rounds
     for key, value in options.items():  # the selection loop's options, or the datamanager's
+        if not hasattr(selection, key) and not hasattr(d, key):
+            raise TypeError(f"short_config: no selection or datamanager option {key!r}")
         setattr(selection if hasattr(selection, key) else d, key, value)
     return cfg
 

@@ -18,7 +18,6 @@ from nerfstudio.configs.base_config import InstantiateConfig
 
 from hpgs_ns.errors import check_option
 from hpgs_ns.resume_keys import resume, signature_of
-from hpgs_ns.selection.after_add import AfterAddConfig
 from hpgs_ns.selectors import SelectorConfig, registry
 from hpgs_ns.selectors.registry import DEFAULT_SELECTOR, SelectorName, option_group, selector_names
 
@@ -70,17 +69,6 @@ class SelectionLoopConfig(InstantiateConfig):
     `<run dir>/snapshots/step-NNNNNN/` (what `hpgs collect` labels). Test views are never rendered."""
     render_short_side: Optional[int] = None
     """Default render size (short side, pixels) for selectors that render views; None = dataset resolution."""
-    # restart-seeded-starts has its own key where it acts (the pipeline's), since its default changed
-    after_add: AfterAddConfig = field(default_factory=AfterAddConfig,
-                                      metadata=resume(lambda v: v.describe(skip=("restart_seeded_starts",))))
-    """How training reacts to the views a round adds (`hpgs_ns.selection.after_add`): refinement window, opacity
-    reset, learning-rate rewind. All off: 0.3's schedule, keyed to step 0."""
-    reset_after_add: bool = field(default=False, metadata=resume(lambda v: str(bool(v))))
-    """After each round, start training over from the new view set, as FisherRF (Jiang et al., ECCV 2024) does:
-    the Gaussians go back to the step-0 ones, optimizer moments, densification state and camera optimizer are
-    cleared, and learning rates and splatfacto's step-keyed schedule (densification, opacity reset, SH degree,
-    resolution) restart at the round's step. The trainer's step keeps counting; the run ends at
-    max-num-iterations."""
 
     def __setstate__(self, state: dict) -> None:
         # A config.yml written before an option existed (PyYAML restores attributes, not __init__): its default.

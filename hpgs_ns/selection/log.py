@@ -39,6 +39,8 @@ class SelectionLog:
     """Training views never added."""
     test: List[str] = field(default_factory=list)
     reset_after_add: bool = False
+    """Whether the splat restarted after every round (`--pipeline.model.restarts.every-round`; the log's key keeps
+    its first name)."""
     seed_points: Optional[str] = None
     """The start mode as resolved (`auto` reads as colmap or active)."""
     random_start: bool = False

@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
-from typing import Any, Dict, List, Optional
+from typing import Any, Dict, List, Optional, Tuple
+
+from hpgs_ns.strategies.base import PointsOutcome
 
 
 @dataclass
@@ -32,7 +34,7 @@ class RoundRecord:
     test_psnr_before: Optional[float] = None
     """eval-each-round: test PSNR just before the round."""
     reset: bool = False
-    """Whether reset-after-add put the splat back to its step-0 state after this round."""
+    """Whether a restart (`--pipeline.model.restarts.*`) put the splat back to its step-0 state after this round."""
     scores: Dict[str, float] = field(default_factory=dict)
     """Score of every candidate the selector looked at (higher = more wanted), by view name."""
     work: Dict[str, float] = field(default_factory=dict)
@@ -79,46 +81,21 @@ class RoundRecord:
 
 
 @dataclass(frozen=True)
-class ResetOutcome:
-    """The splat back at its step-0 Gaussians after a round (reset-after-add, or a restart)."""
-
-    num_gaussians_before: int
-    num_gaussians_after: int
-    """After the reset and the points the restart starts from."""
-
-
-@dataclass(frozen=True)
-class PointsOutcome:
-    """`seed-points active` after a round: points added away from the splat, or those a restart starts from."""
-
-    added: int = 0
-    restart: Optional[int] = None
-    """The points a restart starts from (None: no restart triangulated)."""
-    seconds: float = 0.0
-
-    def fields(self) -> Dict[str, float]:
-        """The round log's `after_add` entries."""
-        if self.restart is not None:
-            return {"seed_points_restart": float(self.restart), "seed_points_seconds": float(self.seconds)}
-        return {"seed_points_added": float(self.added), "seed_points_seconds": float(self.seconds)}
-
-
-@dataclass(frozen=True)
 class RoundFollowUp:
-    """What followed a round's add: a reset or restart, and `seed-points active`'s points (None: nothing)."""
+    """What followed a round's add: each trainer strategy's outcome (a restart, `hpgs_ns.strategies`), then
+    `seed-points active`'s points (None: none added)."""
 
-    reset: Optional[ResetOutcome] = None
+    outcomes: Tuple[Any, ...] = ()
+    """Frozen dataclasses with `recorded_in(record)`, in the strategies' order."""
     points: Optional[PointsOutcome] = None
 
     def recorded_in(self, record: RoundRecord) -> RoundRecord:
         """`record` with what followed its add."""
-        changes: Dict[str, Any] = {}
-        if self.reset is not None:
-            changes.update(reset=True, num_gaussians_before_reset=self.reset.num_gaussians_before,
-                           num_gaussians_after_reset=self.reset.num_gaussians_after)
+        for outcome in self.outcomes:
+            record = outcome.recorded_in(record)
         if self.points is not None:
-            changes["after_add"] = {**record.after_add, **self.points.fields()}
-        return dataclasses.replace(record, **changes)
+            record = dataclasses.replace(record, after_add={**record.after_add, **self.points.fields()})
+        return record
 
 
 @dataclass

@@ -1,4 +1,4 @@
-"""Selection rounds: when they happen, what the selector sees, reset-after-add, and the round log.
+"""Selection rounds: when they happen, what the selector sees, what follows an add, and the round log.
 
 Every `select_every` steps (never at step 0), or at the `select_at` steps, before that step's training iteration,
 the configured selector scores the withheld views and the chosen ones join the active set, until `max_rounds`
@@ -7,7 +7,8 @@ densification reads state left by the last training render (`model.info`), so no
 backward and the strategy step.
 
 The datamanager owns which views are active (and saves them, with the round records, in every checkpoint); the
-model owns rendering; the selector owns scoring. This class asks each for its part. Its options are
+model owns rendering and its trainer strategies (a restart after a round is one, `hpgs_ns.strategies.restarts`);
+the selector owns scoring. This class asks each for its part. Its options are
 `hpgs_ns.selection.config.SelectionConfig` (`--pipeline.selection.*`).
 """
 
@@ -26,14 +27,13 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
 from hpgs_ns.errors import UserError
-from hpgs_ns.schedules import restart_schedules
-from hpgs_ns.selection.after_add import restarts_at
 from hpgs_ns.selection.candidate_log import CandidateLog
 from hpgs_ns.selection.early_stop import GainModel
 from hpgs_ns.selection.log import FILE_NAME, SelectionLog
-from hpgs_ns.selection.records import PointsOutcome, ResetOutcome, RoundFollowUp, RoundRecord, StopRecord
+from hpgs_ns.selection.records import RoundFollowUp, RoundRecord, StopRecord
 from hpgs_ns.selection.schedule import Every, run_steps
 from hpgs_ns.selectors.base import Selection, SelectionContext, SelectionError, Selector, check_selection
+from hpgs_ns.strategies.base import PointsOutcome, RoundAdded, RoundsPlan
 
 
 class RoundError(UserError, RuntimeError):
@@ -181,15 +181,14 @@ class SelectionRounds:
 
     def callbacks(self, attrs: TrainingCallbackAttributes) -> List[TrainingCallback]:
         """The BEFORE_TRAIN_ITERATION callback that runs rounds (and what follows each), and one that writes the final
-        log. Says at start what the run will do (`announce`, `restart_plan`)."""
+        log. Says at start what the run will do (`announce`) and tells the model's strategies the rounds' plan."""
         trainer = attrs.trainer
         if trainer is not None and getattr(trainer, "base_dir", None) is not None:
             self.run_dir = Path(trainer.base_dir)
         first, end = run_steps(trainer) if trainer is not None else (0, 0)
         count = self.announce(first, end) if trainer is not None else None
-        restart_counts = self.restart_plan(count)
-        if self.config.reset_after_add or restart_counts:
-            self.model.keep_initial_for_resets()
+        if hasattr(self.model, "plan_rounds"):
+            self.model.plan_rounds(self.rounds_plan(count))
         active_mode = getattr(self.datamanager, "seed_points_mode", None) == "active"
         self.tell_strategies()  # the active views as the run starts (a resumed run's: its checkpoint's)
 
@@ -199,7 +198,7 @@ class SelectionRounds:
             if self.is_round_step(step):
                 before = len(self.datamanager.active)
                 self.run_round(step)
-                follow_up = self.after_round(step, attrs.optimizers, before, restart_counts, end, active_mode)
+                follow_up = self.after_round(step, attrs.optimizers, before, end, active_mode)
                 self.tell_strategies()
                 # The round is recorded once, with what followed the add, and logged once.
                 self.datamanager.history[-1] = follow_up.recorded_in(self.datamanager.history[-1])
@@ -242,31 +241,16 @@ class SelectionRounds:
             self.check_shortlist(count)
         return count
 
-    def restart_plan(self, count: Optional[int]) -> Tuple[int, ...]:
-        """The view counts at which the splat restarts in this run (none under reset-after-add, which resets at every
-        round), said at start where a start's default decides them; `count`: the rounds still to run (None: as
-        configured)."""
-        if self.config.reset_after_add:
-            return ()
-        dm, after_add = self.datamanager, self.config.after_add
-        active_mode = getattr(dm, "seed_points_mode", None) == "active"
-        initial = len(dm.initial_views)
-        random_start = bool(getattr(self.model, "random_start", False))
+    def rounds_plan(self, count: Optional[int]) -> RoundsPlan:
+        """The rounds as strategies see them at start; `count`: the rounds still to run (None: as configured)."""
+        dm = self.datamanager
         if count is None:
-            reachable = min(initial + self.config.max_rounds * self.config.views_per_round, len(dm.active) + len(dm.candidates))
-        else:  # the views the run will end with: what is active now and what the rounds still to run add
-            reachable = len(dm.active) + min(count * self.config.views_per_round, len(dm.candidates))
-        counts = after_add.restart_counts(initial, random_start, active_mode and not random_start, reachable)
-        if counts and not after_add.restart_at_views:  # HP-GS's 20 + 7: none
-            if random_start:
-                start, source, flag = "random start", "", "restart-random-starts"
-            elif active_mode:
-                start, source, flag = "active seed points", " from what the active views triangulate then", "restart-active-starts"
-            else:
-                start, source, flag = "seed points", " from the capture's points", "restart-seeded-starts"
-            CONSOLE.print(f"{start}: the splat restarts at {' and '.join(map(str, counts))} views{source} "
-                          f"(--pipeline.selection.after-add.{flag} False: never)", soft_wrap=True)
-        return counts
+            final = min(len(dm.initial_views) + self.config.max_rounds * self.config.views_per_round,
+                        len(dm.active) + len(dm.candidates))
+        else:  # what is active now and what the rounds still to run add
+            final = len(dm.active) + min(count * self.config.views_per_round, len(dm.candidates))
+        return RoundsPlan(initial_views=len(dm.initial_views), final_views=int(final),
+                          seed_points=str(getattr(dm, "seed_points_mode", None) or "colmap"))
 
     def tell_strategies(self) -> None:
         """Give the model's trainer strategies (`hpgs_ns.strategies`), if it runs any, the active views and the
@@ -274,24 +258,18 @@ class SelectionRounds:
         if getattr(self.model, "trainer_strategies", None) and hasattr(self.datamanager, "active_views"):
             self.model.after_views_added(self.datamanager.active_views())
 
-    def after_round(self, step: int, optimizers, before: int, restart_counts: Tuple[int, ...], end: int,
-                    active_mode: bool) -> RoundFollowUp:
-        """What follows a round's add: reset-after-add or a restart (and the points it starts from), and
-        `seed-points active`'s new points."""
-        reset: Optional[ResetOutcome] = None
-        points: Optional[PointsOutcome] = None
+    def after_round(self, step: int, optimizers, before: int, end: int, active_mode: bool) -> RoundFollowUp:
+        """What follows a round's add: the model's strategies (a restart, and the points it starts from), then
+        `seed-points active`'s new points unless a restart triangulated every active view already."""
+        dm = self.datamanager
         active_seeds = active_mode and optimizers is not None
-        if self.config.reset_after_add:
-            reset = ResetOutcome(self.reset_model(step, optimizers), int(self.model.num_points))
-        elif restarts_at(restart_counts, before, len(self.datamanager.active)):
-            gaussians_before = self.reset_model(step, optimizers, end=end)
-            if active_seeds:
-                points = self.reseed_from_active(step, optimizers)
-                active_seeds = False  # an active restart triangulated every active view already
-            reset = ResetOutcome(gaussians_before, int(self.model.num_points))
-        if active_seeds:
+        added = RoundAdded(step=int(step), end=int(end), views_before=int(before), views_after=len(dm.active),
+                           optimizers=optimizers, triangulate=dm.triangulate_active if active_seeds else None)
+        outcomes = tuple(self.model.after_round(added)) if hasattr(self.model, "after_round") else ()
+        points = None
+        if active_seeds and not any(getattr(o, "triangulated", False) for o in outcomes):
             points = self.add_seed_points(step, optimizers)
-        return RoundFollowUp(reset, points)
+        return RoundFollowUp(outcomes, points)
 
     # ---- one round -------------------------------------------------------------------------------------------
 
@@ -359,42 +337,6 @@ class SelectionRounds:
             self.candidate_log.on_round(record)
         return selection
 
-    def reset_model(self, step: int, optimizers, end: Optional[int] = None) -> int:
-        """The model back to its step-0 state and every schedule restarted at `step` (reset-after-add); with `end`
-        (a restart), the schedules squeezed into the steps from `step` to `end`. Returns the Gaussians before."""
-        model = self.model
-        if optimizers is None or not hasattr(model, "reset_to_initial"):
-            raise RoundError("reset-after-add needs the hpgs model and the trainer's optimizers")
-        before = model.num_points
-        model.reset_to_initial(step, optimizers.optimizers)
-        if end is None:
-            restart_schedules(optimizers)
-            what = f"reset after add: {before} -> {model.num_points} Gaussians, schedules restart at step {step}"
-        else:
-            left = max(int(end) - int(step), 1)
-            model.set_clock_scale(left / max(int(end), 1))
-            restart_schedules(optimizers, span=left)
-            what = (f"restart at {len(self.datamanager.active)} views: {before} -> {model.num_points} Gaussians, "
-                    f"every schedule reruns in the {left} steps left")
-        CONSOLE.print(what)
-        writer.put_scalar("selection/num_gaussians_before_reset", before, step)
-        return int(before)
-
-    def reseed_from_active(self, step: int, optimizers) -> PointsOutcome:
-        """`seed-points active` at a restart: the splat starts over from the points the active views triangulate now
-        (not from the initial views' few, or random, points); with too few, from its step-0 Gaussians. Returns
-        what it did."""
-        dm, model = self.datamanager, self.model
-        start = time.perf_counter()
-        xyz, rgb, info = dm.triangulate_active()
-        count = model.replace_gaussians(xyz, rgb, optimizers) if info.ok else 0
-        if count:
-            CONSOLE.print(f"restart: the splat starts from {count} points triangulated from {len(dm.active)} views")
-        else:
-            CONSOLE.print(f"[yellow]restart: {info.message or 'no points triangulated'}; the splat starts from its "
-                          "step-0 Gaussians", soft_wrap=True)
-        return PointsOutcome(restart=int(count), seconds=float(time.perf_counter() - start))
-
     def add_seed_points(self, step: int, optimizers) -> PointsOutcome:
         """`seed-points active`: triangulate the active views again (the round's new views with the earlier ones,
         whose features and matches the datamanager's workspace keeps) and add the points away from the splat as new
@@ -443,7 +385,7 @@ class SelectionRounds:
         return SelectionLog(
             selector=self.config.selector,
             seed=self.seed,
-            reset_after_add=self.config.reset_after_add,
+            reset_after_add=any(getattr(s, "resets_every_round", False) for s in getattr(self.model, "trainer_strategies", [])),
             seed_points=getattr(dm, "seed_points_mode", None),  # as resolved: `auto` is colmap or active
             random_start=bool(getattr(self.model, "random_start", False)),  # that mode found no points
             initial=[names[i] for i in dm.initial_views],

@@ -3,8 +3,14 @@ object with the hooks below, all no-ops by default, as gsplat's densification st
 and `step_post_backward`. The model (`HpgsSplatfactoModel`) builds the active ones from `registry` and calls:
 
 - `at_start(model, start)`: once the pipeline has set the run up (`RunStart`: the start as resolved, the training
-  split's cameras); returns what a resumed run must keep of it as text (None: nothing; by default its config's
-  `describe()`), and says at start what it will do, or that it does nothing;
+  split's cameras); returns what a resumed run must keep of it as text, kept under its name (None: nothing; by
+  default its config's `describe()`), or as {signature key: text}, and says at start what it will do, or that it
+  does nothing;
+- `plan(model, plan)`: once training is about to start (a resumed run: once its checkpoint is loaded), with the
+  rounds it will run (`RoundsPlan`: the initial views, the views the run will end with);
+- `after_round(model, added)`: right after a round's views joined the active set (`RoundAdded`: the step, the view
+  counts before and after, the trainer's optimizers); returns what it did as a frozen dataclass with
+  `recorded_in(record)`, which the round's record keeps (None: nothing);
 - `after_views_added(model, views)`: at the start of training and after each selection round (once the round's
   own follow-up, e.g. `seed-points active`'s triangulation, is done), with the datamanager's `ActiveViews`;
 - `loss(model, outputs, batch, step)`: extra loss terms, merged into `get_loss_dict` (nerfstudio sums them);
@@ -21,7 +27,7 @@ during training says so with `render_depth = True`.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Callable, Dict, List, Optional, Type
+from typing import Any, Callable, Dict, List, Optional, Type, Union
 
 import torch
 from nerfstudio.configs.base_config import InstantiateConfig
@@ -79,14 +85,63 @@ class RunStart:
     """A training run (False: `ns-eval`, `ns-viewer` opening one)."""
 
 
+@dataclass(frozen=True)
+class RoundsPlan:
+    """What strategies see of the selection rounds as training starts."""
+
+    initial_views: int
+    final_views: int
+    """The active views the run will end with (what is active now and what the rounds still to run add)."""
+    seed_points: str
+    """The start as resolved (see `RunStart`)."""
+
+
+@dataclass(frozen=True)
+class PointsOutcome:
+    """`seed-points active` after a round: points added away from the splat, or those a restart starts from."""
+
+    added: int = 0
+    restart: Optional[int] = None
+    """The points a restart starts from (None: no restart triangulated)."""
+    seconds: float = 0.0
+
+    def fields(self) -> Dict[str, float]:
+        """The round log's `after_add` entries."""
+        if self.restart is not None:
+            return {"seed_points_restart": float(self.restart), "seed_points_seconds": float(self.seconds)}
+        return {"seed_points_added": float(self.added), "seed_points_seconds": float(self.seconds)}
+
+
+@dataclass(frozen=True)
+class RoundAdded:
+    """A round's add, as strategies see it right after (`after_round`)."""
+
+    step: int
+    end: int
+    """The run's last step + 1."""
+    views_before: int
+    views_after: int
+    optimizers: Any
+    """The trainer's nerfstudio `Optimizers` (None: a test without a trainer)."""
+    triangulate: Optional[Callable[[], Any]] = None
+    """`seed-points active`: triangulate every active view now (the datamanager's `triangulate_active`: xyz, rgb,
+    info); None for the other starts."""
+
+
 class Strategy:
     """The hooks, all no-ops (see the module docstring)."""
 
     render_depth: bool = False
 
-    def at_start(self, model: Any, start: RunStart) -> Optional[str]:
+    def at_start(self, model: Any, start: RunStart) -> Union[None, str, Dict[str, str]]:
         config = getattr(self, "config", None)  # what its options say a resumed run must keep
         return config.describe() if isinstance(config, StrategyConfig) else None
+
+    def plan(self, model: Any, plan: RoundsPlan) -> None:
+        return None
+
+    def after_round(self, model: Any, added: RoundAdded) -> Optional[Any]:
+        return None
 
     def after_views_added(self, model: Any, views: ActiveViews) -> None:
         return None

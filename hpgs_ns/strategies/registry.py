@@ -12,6 +12,7 @@ from typing import Dict, Type
 BUILTIN_STRATEGIES: Dict[str, str] = {
     "near-cull": "hpgs_ns.strategies.near_cull:NearCullConfig",
     "depth-loss": "hpgs_ns.strategies.depth_loss:DepthLossConfig",
+    "restarts": "hpgs_ns.strategies.restarts:RestartsConfig",
 }
 
 

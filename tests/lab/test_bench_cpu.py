@@ -198,7 +198,7 @@ def test_strict_init_runs_go_to_their_own_protocol_folder(tiny_scene, tmp_path):
     assert job.protocol.name == "hpgs-reset-strict"
     args = train_args(bench, job, tmp_path / "_runs")
     assert args[args.index("--pipeline.datamanager.seed-points") + 1] == "colmap-initial"
-    assert args[args.index(f"--{SELECTION_PREFIX}reset-after-add") + 1] == "True"
+    assert args[args.index("--pipeline.model.restarts.every-round") + 1] == "True"
 
 
 def test_work_table_shows_what_selection_skipped():
@@ -484,10 +484,10 @@ def test_bench_passes_the_option_and_keeps_its_results_apart(tiny_scene, tmp_pat
     args = train_args(bench, job, tmp_path)
     assert args[:4] == [sys.executable, "-m", "nerfstudio.scripts.train", "hpgs"]
     cfg = tyro.cli(tyro.conf.FlagConversionOff[HpgsTrainerConfig], default=hpgs_trainer_config(), args=args[4:])
-    assert cfg.pipeline.selection.reset_after_add is True
+    assert cfg.pipeline.model.restarts.every_round is True
     plain = Bench(scenes=[tiny_scene], protocols=["fisherrf"])
     assert plain.jobs()[0].protocol.name == "fisherrf"
-    assert "--pipeline.selection.reset-after-add" not in train_args(plain, plain.jobs()[0], tmp_path)
+    assert "--pipeline.model.restarts.every-round" not in train_args(plain, plain.jobs()[0], tmp_path)
 
 
 def test_twelve_scenes_in_the_gain_plot_look_each_unlike_the_others():

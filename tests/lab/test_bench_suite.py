@@ -197,14 +197,14 @@ def test_the_code_hash_follows_a_selectors_own_files_only(monkeypatch, tmp_path)
     after = {s: provenance.code_hash(s) for s in ("random", "fisher", "hpgs", None)}
     assert [s for s in before if before[s] != after[s]] == ["fisher"]
     # comments, docstrings (the options' field docs too) and blank lines are not code
-    after_add = copy / "selection" / "after_add.py"
+    after_add = copy / "strategies" / "restarts.py"
     text = after_add.read_text()
     assert '    """Start the splat over' in text and "# " in text
     edited = text.replace('    """Start the splat over', '    """Begin the splat again').replace(
         "import annotations", "import annotations  # a comment\n\n\n")
     after_add.write_text(edited)
     assert provenance.code_hash(None) == after[None]
-    after_add.write_text(edited.replace("restart_random_starts: bool = True", "restart_random_starts: bool = False"))
+    after_add.write_text(edited.replace("random_starts: bool = True", "random_starts: bool = False"))
     assert provenance.code_hash(None) != after[None]
     after_add.write_text(text)
     (copy / "model.py").write_text((copy / "model.py").read_text() + "\nCHANGED = 1\n")

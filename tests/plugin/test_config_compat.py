@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import shutil
 from pathlib import Path
 
@@ -121,3 +122,27 @@ def test_a_checkpoints_view_names_map_to_the_splits_names_now():
     assert view_names_now(names, names) == {}
     assert view_names_now(["a.png", "b.png"], names) == {"a.png": "images/a.png", "b.png": "images/b.png"}  # 0.1's
     assert view_names_now(["a.png", "c.png"], names) is None and view_names_now(None, names) is None
+
+
+def test_a_0_4_config_yml_reads_its_restart_options_into_the_models_restarts_group():
+    from hpgs_ns.method_config import hpgs_trainer_config
+
+    text = yaml.dump(hpgs_trainer_config().pipeline)
+    assert "  restarts: !!python/object:hpgs_ns.strategies.restarts.RestartsConfig\n" in text
+    # 0.4 wrote them on the selection, in a class of their own (gone now), beside fields 0.5 removed
+    old_model = re.sub(r"  restarts: !!python/object:hpgs_ns.strategies.restarts.RestartsConfig\n(    .*\n)+", "", text)
+    assert "restarts" not in old_model.split("selection:")[0]
+    old = old_model.replace("selection: !!python/object:hpgs_ns.selection.config.SelectionConfig\n",
+                            "selection: !!python/object:hpgs_ns.selection.config.SelectionConfig\n"
+                            "  after_add: !!python/object:hpgs_ns.selection.after_add.AfterAddConfig\n"
+                            "    restart_at_views: !!python/tuple\n    - 8\n    - 16\n"
+                            "    restart_random_starts: false\n    restart_seeded_starts: false\n    refine_steps: 0\n"
+                            "  reset_after_add: true\n")
+    for loader in (yaml.Loader, yaml.UnsafeLoader):  # nerfstudio's eval_setup and --load-config read with Loader
+        config = yaml.load(old, Loader=loader)
+        restarts = config.model.restarts
+        assert (restarts.at_views, restarts.random_starts, restarts.active_starts, restarts.seeded_starts,
+                restarts.every_round) == ((8, 16), False, True, False, True)
+        assert "after_add" not in config.selection.__dict__ and "reset_after_add" not in config.selection.__dict__
+    # a config.yml of 0.5 reads its own group as written
+    assert yaml.load(text, Loader=yaml.Loader).model.restarts == hpgs_trainer_config().pipeline.model.restarts

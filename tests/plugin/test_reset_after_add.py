@@ -1,4 +1,4 @@
-"""`--pipeline.selection.reset-after-add` (FisherRF's protocol) on the tiny scene with the CPU rasterizer.
+"""`--pipeline.model.restarts.every-round` (FisherRF's protocol) on the tiny scene with the CPU rasterizer.
 
 Densification is set to start at step 40 (splatfacto pauses refinement for num_train_data + refine_every steps
 after each opacity reset, step 0 included), so by the round at step 50 the splat has grown and the reset
@@ -20,8 +20,9 @@ CAPTURE = {0, 1, ROUND - 1, ROUND, ROUND + 1, 59, 60, SECOND_ROUND}
 
 
 def reset_config(scene: Path, out: Path, steps: int, reset: bool = True):
-    cfg = short_config(scene, out, steps=steps, select_at=(ROUND, SECOND_ROUND), rounds=2, reset_after_add=reset)
+    cfg = short_config(scene, out, steps=steps, select_at=(ROUND, SECOND_ROUND), rounds=2)
     model = cfg.pipeline.model
+    model.restarts.every_round = reset
     model.warmup_length, model.refine_every, model.reset_alpha_every = 5, 5, 100  # first refinement at step 40
     model.camera_optimizer.mode = "SO3xR3"  # so the camera optimizer's reset is checked too
     return cfg

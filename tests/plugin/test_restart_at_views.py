@@ -1,7 +1,7 @@
-"""`--pipeline.selection.after-add.restart-*` and `--schedules-follow-steps` on the tiny scene (CPU rasterizer).
+"""`--pipeline.model.restarts.*` and `--schedules-follow-steps` on the tiny scene (CPU rasterizer).
 
 A random start (random-init) from 3 initial views, 3 views added at steps 30 and 50 of 80: with the defaults
-(restart-random-starts), the round at step 30 (3 -> 6 views, twice the initial count) starts the splat over with 50
+(random-starts), the round at step 30 (3 -> 6 views, twice the initial count) starts the splat over with 50
 of the 80 steps left, so every schedule runs 80/50 = 1.6 times faster from there; the round at step 50 (6 -> 9)
 does not restart (the next count is 12)."""
 
@@ -16,7 +16,7 @@ import torch
 from conftest import run_training_seeing, short_config
 
 from hpgs_ns.schedules import DecayMultiplier
-from hpgs_ns.selection.after_add import AfterAddConfig, AfterAddError, restarts_at
+from hpgs_ns.strategies.restarts import RestartError, RestartsConfig
 
 RESTART, SECOND, TOTAL = 30, 50, 80
 LEFT = TOTAL - RESTART
@@ -112,45 +112,45 @@ def test_the_squeezed_clocks_are_in_the_checkpoint(run):
 
 
 def test_restart_counts_must_be_positive():
-    with pytest.raises(AfterAddError, match="restart-at-views 0 8"):
-        AfterAddConfig(restart_at_views=(0, 8))
-    config = AfterAddConfig(restart_at_views=(8, 16))
-    assert config.describe() == "restart-at-views 8 16"
-    assert restarts_at((8, 16), 6, 8) and restarts_at((8, 16), 15, 17) and not restarts_at((8, 16), 8, 9)
+    with pytest.raises(RestartError, match=r"--pipeline.model.restarts.at-views 0 8: view counts must be >= 1"):
+        RestartsConfig(at_views=(0, 8))
+    config = RestartsConfig(at_views=(8, 16))
+    assert config.describe_restarts() == "restart-at-views 8 16"  # 0.4's words: checkpoints hold them
     assert config.restart_counts(4, random_start=False) == (8, 16)
-    auto = AfterAddConfig()
+    auto = RestartsConfig()
     assert auto.restart_counts(4, random_start=True) == (8, 16) and auto.restart_counts(4, random_start=False) == (8, 16)
-    assert auto.describe() == "off" and not AfterAddConfig(restart_random_starts=False).restart_counts(4, True)
+    assert auto.describe_restarts() == "off" and not RestartsConfig(random_starts=False).restart_counts(4, True)
     # an active start that found its points restarts too, unless told not to; HP-GS's 20 + 7 views never reach 40
     assert auto.restart_counts(4, random_start=False, active_start=True) == (8, 16)
-    assert AfterAddConfig(restart_active_starts=False).restart_counts(4, False, active_start=True) == ()
-    assert AfterAddConfig(restart_active_starts=False).restart_counts(4, True, active_start=False) == (8, 16)
+    assert RestartsConfig(active_starts=False).restart_counts(4, False, active_start=True) == ()
+    assert RestartsConfig(active_starts=False).restart_counts(4, True, active_start=False) == (8, 16)
     assert auto.restart_counts(20, False, active_start=True) == (40, 80)
     # a start from the capture's points restarts too by default (restart-seeded-starts), and only as such; 0.4's
     # trainer (never) is one flag away
-    unseeded = AfterAddConfig(restart_seeded_starts=False)
-    assert unseeded.describe() == "restart-seeded-starts False"
+    unseeded = RestartsConfig(seeded_starts=False)
+    assert unseeded.signature("colmap", random_start=False) == {
+        "after-add": "off", "reset-after-add": "False", "after-add.restart-seeded-starts": "False"}
     assert unseeded.restart_counts(4, random_start=False) == ()
     assert unseeded.restart_counts(4, random_start=True) == unseeded.restart_counts(4, False, True) == (8, 16)
-    assert AfterAddConfig(restart_active_starts=False).restart_counts(4, False, True) == ()
-    assert AfterAddConfig(restart_random_starts=False).restart_counts(4, True) == ()
+    assert RestartsConfig(active_starts=False).restart_counts(4, False, True) == ()
+    assert RestartsConfig(random_starts=False).restart_counts(4, True) == ()
     assert auto.restart_counts(20, random_start=False, final_views=27) == ()  # HP-GS's 20 + 7: never
 
 
 def test_restart_counts_end_with_the_runs_final_views():
-    assert AfterAddConfig().restart_counts(4, random_start=True, final_views=12) == (8,)
-    assert AfterAddConfig().restart_counts(4, random_start=False, final_views=20) == (8, 16)  # seeded
-    assert AfterAddConfig(restart_seeded_starts=False).restart_counts(4, random_start=False, final_views=20) == ()
-    assert AfterAddConfig(restart_at_views=(8, 20)).restart_counts(4, False, final_views=20) == (8, 20)
-    assert AfterAddConfig().restart_counts(4, random_start=False, final_views=4) == ()  # no round adds views
+    assert RestartsConfig().restart_counts(4, random_start=True, final_views=12) == (8,)
+    assert RestartsConfig().restart_counts(4, random_start=False, final_views=20) == (8, 16)  # seeded
+    assert RestartsConfig(seeded_starts=False).restart_counts(4, random_start=False, final_views=20) == ()
+    assert RestartsConfig(at_views=(8, 20)).restart_counts(4, False, final_views=20) == (8, 20)
+    assert RestartsConfig().restart_counts(4, random_start=False, final_views=4) == ()  # no round adds views
 
 
-def seeded_run(tiny_scene, folder: Path, after_add: AfterAddConfig, capsys):
-    """A run from the synthetic scene's points (3 initial views, 3 more at steps 20 and 30 of 40) with `after_add`:
+def seeded_run(tiny_scene, folder: Path, restarts: RestartsConfig, capsys):
+    """A run from the synthetic scene's points (3 initial views, 3 more at steps 20 and 30 of 40) with `restarts`:
     (trainer, what `see` saw each step, the rounds' log, the console's start-up text on one line)."""
     cfg = short_config(tiny_scene, folder, steps=40, select_at=(20, 30), rounds=2, initial=3, views_per_round=3,
                        selector="random")
-    cfg.pipeline.selection.after_add = after_add
+    cfg.pipeline.model.restarts = restarts
     torch.manual_seed(0)
     trainer, seen = run_training_seeing(cfg, see)
     assert not trainer.pipeline.model.random_start  # the synthetic scene's points: no automatic restarts
@@ -159,8 +159,8 @@ def seeded_run(tiny_scene, folder: Path, after_add: AfterAddConfig, capsys):
 
 
 def test_a_seeded_run_restarts_where_restart_at_views_says(tiny_scene, tmp_path, capsys):
-    after_add = AfterAddConfig(restart_at_views=(9,), restart_seeded_starts=False)
-    trainer, seen, resets, out = seeded_run(tiny_scene, tmp_path / "last", after_add, capsys)
+    restarts = RestartsConfig(at_views=(9,), seeded_starts=False)
+    trainer, seen, resets, out = seeded_run(tiny_scene, tmp_path / "last", restarts, capsys)
     signature = trainer.pipeline.datamanager.selection_signature
     assert signature["after-add.restart-seeded-starts"] == "False" and signature["after-add"] == "restart-at-views 9"
     model = trainer.pipeline.model
@@ -171,7 +171,7 @@ def test_a_seeded_run_restarts_where_restart_at_views_says(tiny_scene, tmp_path,
 
 
 def test_a_seeded_run_restarts_at_twice_its_initial_views_by_default(tiny_scene, tmp_path, capsys):
-    trainer, seen, resets, out = seeded_run(tiny_scene, tmp_path / "seeded", AfterAddConfig(), capsys)
+    trainer, seen, resets, out = seeded_run(tiny_scene, tmp_path / "seeded", RestartsConfig(), capsys)
     model = trainer.pipeline.model
     assert "seed points: the splat restarts at 6 views from the capture's points" in out
     assert resets == [True, False]  # 3 -> 6: twice the initial views; 6 -> 9: no (12 never comes)
@@ -200,13 +200,14 @@ def test_a_checkpoint_from_before_seeded_restarts_were_the_default_resumes_as_it
     # resumes it; with the flag it resumes
     old = {**base, "after-add": "off"}
     with pytest.raises(CheckpointError, match=r"after-add.restart-seeded-starts: checkpoint False, now True.*"
-                                              r"restart-seeded-starts False: seeded starts did not restart before"):
+                                              r"--pipeline.model.restarts.seeded-starts False: seeded starts did not restart before"):
         resume(old, today)
     resume(old, {**today, "after-add.restart-seeded-starts": "False"})
     # 0.4's checkpoint that asked for it (then written inside after-add) resumes under today's default as it is
     resume({**base, "after-add": "restart-seeded-starts True, restart-at-views 8"},
            {**today, "after-add": "restart-at-views 8"})
-    with pytest.raises(CheckpointError, match="after-add: checkpoint restart-at-views 8, now off"):
+    with pytest.raises(CheckpointError, match=r"after-add: checkpoint restart-at-views 8, now off.*"
+                                              r"\(--pipeline.model.restarts.at-views 8\)"):
         resume({**base, "after-add": "restart-seeded-starts True, restart-at-views 8"}, today)
     # a random start has no such key, then or now: an old checkpoint of one resumes unchanged
     random_now = {**base, "seed-points": "colmap", "after-add": "off"}

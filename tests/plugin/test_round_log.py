@@ -7,11 +7,10 @@ from pathlib import Path
 import pytest
 from conftest import run_training, short_config
 
-from hpgs_ns.selection.after_add import AfterAddConfig
 from hpgs_ns.selection.log import SelectionLog
 
 
-@pytest.mark.parametrize("what", ["reset-after-add", "after-add restart-at-views"])
+@pytest.mark.parametrize("what", ["every-round", "at-views"])
 def test_selected_views_json_is_written_once_per_round(tiny_scene, tmp_path, monkeypatch, what):
     writes = []
     original = SelectionLog.write
@@ -21,15 +20,16 @@ def test_selected_views_json_is_written_once_per_round(tiny_scene, tmp_path, mon
         return original(self, path)
 
     monkeypatch.setattr(SelectionLog, "write", counted)
-    cfg = short_config(tiny_scene, tmp_path, steps=40, every=15, rounds=2, selector="random",
-                       reset_after_add=what == "reset-after-add")
-    if what != "reset-after-add":  # a restart at the first round's 7 views only
-        cfg.pipeline.selection.after_add = AfterAddConfig(restart_at_views=(7,))
+    cfg = short_config(tiny_scene, tmp_path, steps=40, every=15, rounds=2, selector="random")
+    if what == "every-round":
+        cfg.pipeline.model.restarts.every_round = True
+    else:  # a restart at the first round's 7 views only
+        cfg.pipeline.model.restarts.at_views = (7,)
     trainer = run_training(cfg)
     # at the first step, once per round (15, 30), at the end: never a half-done round
     assert [n for n, _ in writes] == [0, 1, 2, 2]
     first, second = writes[1][1], writes[2][1]
-    if what == "reset-after-add":
+    if what == "every-round":
         assert first["reset"] and first["num_gaussians_after_reset"] > 0 and "after_add" not in first
     else:
         assert first["reset"] and first["num_gaussians_after_reset"] > 0 and not second.get("reset")

@@ -114,7 +114,7 @@ def test_auto_keeps_the_captures_points_and_triangulates_only_without_them(tiny_
     cfg.pipeline.model.num_random = 3000
     trainer = setup_trainer(cfg)
     dm = trainer.pipeline.datamanager
-    assert spy == [dm.active] and dm.seed_points_mode == "active"  # after-add's active-start restarts apply too
+    assert spy == [dm.active] and dm.seed_points_mode == "active"  # the active-start restarts apply too
     out = " ".join((lambda o: o.out + o.err)(capsys.readouterr()).split())
     assert "the capture has no point cloud, so they are triangulated from the active views" in out
     assert trainer.pipeline.model.num_points == 3000  # the tiny scene triangulates too few: random, one line
@@ -167,11 +167,10 @@ def test_add_gaussians_grows_the_splat_its_optimizers_and_strategy_state(tiny_sc
 
 
 def test_a_restart_in_active_mode_starts_from_what_the_active_views_triangulate(juicebox, tmp_path, spy):
-    from hpgs_ns.selection.after_add import AfterAddConfig
 
     cfg = juicebox_config(juicebox, tmp_path / "run", steps=3, select_at=(1,), rounds=1, initial=8, views_per_round=4,
                           selector="random", seed_points="active")
-    cfg.pipeline.selection.after_add = AfterAddConfig(restart_at_views=(12,))
+    cfg.pipeline.model.restarts.at_views = (12,)
     trainer = setup_trainer(cfg)
     dm, model = trainer.pipeline.datamanager, trainer.pipeline.model
     seeded = model.num_points
