@@ -172,7 +172,7 @@ def restart_flags(key: str, saved: Optional[str]) -> str:
         return f"{flag}{key[len('after-add.restart-'):]} {saved or 'True'}"
     words = [] if saved in (None, "off") else saved.split(", ")
     if not words:
-        return f"no {flag}at-views, random-starts False or active-starts False"
+        return f"without {flag}at-views, with {flag}random-starts and active-starts True"
     return " ".join(flag + w[len("restart-"):] for w in words)
 
 

@@ -30,7 +30,6 @@ from collections import defaultdict
 from dataclasses import MISSING, dataclass, field, fields, make_dataclass
 from typing import Any, Callable, Dict, Iterator, List, Literal, Optional, Tuple, Type, Union
 
-import numpy as np
 import torch
 from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.models import splatfacto
@@ -266,27 +265,7 @@ class HpgsSplatfactoModel(SplatfactoModel):
             backend=self.rasterizer_name,
         )
 
-    # ---- seed points after a round (`seed-points active`) -------------------------------------------------------
-
-    @torch.no_grad()
-    def points_away_from_splat(self, xyz: torch.Tensor) -> torch.Tensor:
-        """[N] bool: which of the points `xyz` [N, 3] lie farther from every Gaussian's mean than the splat's median
-        nearest-neighbour spacing.
-
-        That spacing is the splat's own sampling density where it has Gaussians (densification keeps it in step with
-        the detail the views show): a point closer than it adds nothing the splat lacks, while a point farther lies
-        where no Gaussian is, the part of the scene only the new views show. A fixed fraction of the scene's extent
-        would ignore densification and the scene's scale (floaters or walls far off stretch the extent)."""
-        from scipy.spatial import cKDTree
-
-        means = self.means.detach().cpu().double().numpy()
-        if xyz.shape[0] == 0 or means.shape[0] < 2:
-            return torch.ones(xyz.shape[0], dtype=torch.bool)
-        tree = cKDTree(means)
-        sample = means if means.shape[0] <= 20000 else means[torch.randperm(means.shape[0])[:20000].numpy()]
-        spacing = float(np.median(tree.query(sample, k=2)[0][:, 1]))
-        distance = tree.query(xyz.detach().cpu().double().numpy(), k=1)[0]
-        return torch.from_numpy(distance > spacing)
+    # ---- Gaussians added or replaced mid-run (`seed-points active` after a round, a restart from new points) ----
 
     @torch.no_grad()
     def add_gaussians(self, xyz: torch.Tensor, rgb: torch.Tensor, optimizers) -> int:

@@ -211,6 +211,27 @@ def seed_points(cameras, image_paths: Sequence[Path], indices: Sequence[int], **
     return None
 
 
+@torch.no_grad()
+def away_from_splat(means: torch.Tensor, xyz: torch.Tensor) -> torch.Tensor:
+    """[N] bool: which of the points `xyz` [N, 3] lie farther from every Gaussian mean (`means` [G, 3]) than the
+    splat's median nearest-neighbour spacing (`seed-points active` adds only those after a round).
+
+    That spacing is the splat's own sampling density where it has Gaussians (densification keeps it in step with
+    the detail the views show): a point closer than it adds nothing the splat lacks, while a point farther lies
+    where no Gaussian is, the part of the scene only the new views show. A fixed fraction of the scene's extent
+    would ignore densification and the scene's scale (floaters or walls far off stretch the extent)."""
+    from scipy.spatial import cKDTree
+
+    means = means.detach().cpu().double().numpy()
+    if xyz.shape[0] == 0 or means.shape[0] < 2:
+        return torch.ones(xyz.shape[0], dtype=torch.bool)
+    tree = cKDTree(means)
+    sample = means if means.shape[0] <= 20000 else means[torch.randperm(means.shape[0])[:20000].numpy()]
+    spacing = float(np.median(tree.query(sample, k=2)[0][:, 1]))
+    distance = tree.query(xyz.detach().cpu().double().numpy(), k=1)[0]
+    return torch.from_numpy(distance > spacing)
+
+
 class TriangulationWorkspace:
     """A temporary folder (images downscaled for SIFT, COLMAP database, triangulation output) kept between calls,
     so a later call extracts only new views and matches only pairs with a new view. Removed by `close()` or at

@@ -27,6 +27,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
 from hpgs_ns.errors import UserError
+from hpgs_ns.scenes.triangulate import away_from_splat
 from hpgs_ns.selection.candidate_log import CandidateLog
 from hpgs_ns.selection.early_stop import GainModel
 from hpgs_ns.selection.log import FILE_NAME, SelectionLog
@@ -348,7 +349,7 @@ class SelectionRounds:
         if info.failed:
             CONSOLE.print(f"[yellow]seed points after round {len(dm.history)}: {info.message}; no Gaussians added", soft_wrap=True)
         elif xyz.shape[0]:
-            away = model.points_away_from_splat(xyz)
+            away = away_from_splat(model.means, xyz)
             added = model.add_gaussians(xyz[away], rgb[away], optimizers)
         seconds = time.perf_counter() - start
         if not info.failed:  # a failure had its one line above

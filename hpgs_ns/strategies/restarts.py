@@ -113,11 +113,6 @@ class RestartsConfig(StrategyConfig):
             on.append("restart-active-starts False")
         return ", ".join(on) if on else "off"
 
-    def describe(self) -> Optional[str]:
-        """For the start-up line (the resume keys are `signature`'s)."""
-        words = ["every-round"] if self.every_round else []
-        return ", ".join(words + ([] if self.describe_restarts() == "off" else [self.describe_restarts()])) or None
-
 
 @dataclass(frozen=True)
 class RestartOutcome:

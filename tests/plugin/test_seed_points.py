@@ -260,3 +260,14 @@ def test_without_pycolmap_a_run_that_triangulates_stops_before_training_in_one_l
     with pytest.raises(triangulate.PycolmapMissingError, match="triangulation needs pycolmap"):
         triangulate.triangulate_views(trainer.pipeline.datamanager.photo_cameras,
                                       trainer.pipeline.datamanager.train_dataset.image_filenames, [0, 1])
+
+
+def test_only_points_farther_than_the_splats_own_spacing_count_as_away_from_it():
+    from hpgs_ns.scenes.triangulate import away_from_splat
+
+    grid = torch.stack(torch.meshgrid(*[torch.arange(5.0)] * 3, indexing="ij"), -1).reshape(-1, 3)  # spacing 1
+    points = torch.tensor([[2.0, 2.0, 2.0], [2.4, 2.0, 2.0], [2.0, 2.0, 3.9], [10.0, 0.0, 0.0], [2.0, 2.0, 5.6]])
+    # on a mean, 0.4 and 0.1 from one (closer than the spacing): not away; 8 and 1.6 from the nearest: away
+    assert away_from_splat(grid, points).tolist() == [False, False, False, True, True]
+    assert away_from_splat(grid[:1], points).all()  # one Gaussian has no spacing: every point is new
+    assert away_from_splat(grid, torch.zeros(0, 3)).shape == (0,)
