@@ -165,6 +165,12 @@ class Restarts(Strategy):
                                          plan.final_views)
         if cfg.every_round or self.counts:
             model.keep_initial_for_resets()
+        if cfg.at_views and cfg.every_round:
+            CONSOLE.print(f"[yellow]{FLAG}at-views does nothing with {FLAG}every-round: the splat restarts after every "
+                          "round", soft_wrap=True)
+        elif cfg.at_views and not self.counts:
+            CONSOLE.print(f"[yellow]{FLAG}at-views {' '.join(map(str, cfg.at_views))} does nothing: this run goes from "
+                          f"{plan.initial_views} to {plan.final_views} views", soft_wrap=True)
         if self.counts and not cfg.at_views:  # HP-GS's 20 + 7: none
             if random_start:
                 what, source, flag = "random start", "", "random-starts"

@@ -145,6 +145,26 @@ def test_restart_counts_end_with_the_runs_final_views():
     assert RestartsConfig().restart_counts(4, random_start=False, final_views=4) == ()  # no round adds views
 
 
+def test_restart_options_that_do_nothing_say_so_at_start(capsys):
+    from types import SimpleNamespace
+
+    from hpgs_ns.strategies.base import RoundsPlan
+
+    def said(config: RestartsConfig, final_views: int) -> str:
+        model = SimpleNamespace(random_start=False, keep_initial_for_resets=lambda: None)
+        config.setup().plan(model, RoundsPlan(initial_views=4, final_views=final_views, seed_points="colmap"))
+        return " ".join(capsys.readouterr().out.split())
+
+    assert said(RestartsConfig(at_views=(8,), every_round=True), 20) == (
+        "--pipeline.model.restarts.at-views does nothing with --pipeline.model.restarts.every-round: the splat "
+        "restarts after every round")
+    assert said(RestartsConfig(at_views=(30, 40)), 20) == (
+        "--pipeline.model.restarts.at-views 30 40 does nothing: this run goes from 4 to 20 views")
+    assert said(RestartsConfig(at_views=(8, 40)), 20) == ""  # 8 comes: nothing to say (the counts are the user's)
+    assert said(RestartsConfig(), 20) == ("seed points: the splat restarts at 8 and 16 views from the capture's "
+                                          "points (--pipeline.model.restarts.seeded-starts False: never)")
+
+
 def seeded_run(tiny_scene, folder: Path, restarts: RestartsConfig, capsys):
     """A run from the synthetic scene's points (3 initial views, 3 more at steps 20 and 30 of 40) with `restarts`:
     (trainer, what `see` saw each step, the rounds' log, the console's start-up text on one line)."""
