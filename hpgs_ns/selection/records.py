@@ -9,9 +9,10 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
-from typing import Any, Dict, List, Optional, Tuple
+from typing import TYPE_CHECKING, Any, Dict, List, Optional, Tuple
 
-from hpgs_ns.strategies.base import PointsOutcome
+if TYPE_CHECKING:  # the lab reads records without torch, which the strategies import
+    from hpgs_ns.strategies.base import PointsOutcome
 
 
 @dataclass
