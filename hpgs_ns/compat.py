@@ -75,7 +75,7 @@ def move_restarts(selection: Any, model: Any) -> None:
     restarts = getattr(model, "restarts", None)
     if restarts is None:
         return
-    old = after_add if isinstance(after_add, dict) else getattr(after_add, "__dict__", {})
+    old = after_add if isinstance(after_add, dict) else {}  # its tag reads as a mapping (`_old_after_add`)
     for name, new in RESTART_FIELDS.items():
         if name in old:
             value = old[name]

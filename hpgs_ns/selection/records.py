@@ -7,7 +7,6 @@ every earlier version (0.1 logs lack `work`, older ones `reset`).
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Dict, List, Optional, Tuple
 
@@ -95,7 +94,7 @@ class RoundFollowUp:
         for outcome in self.outcomes:
             record = outcome.recorded_in(record)
         if self.points is not None:
-            record = dataclasses.replace(record, after_add={**record.after_add, **self.points.fields()})
+            record = self.points.recorded_in(record)
         return record
 
 

@@ -26,6 +26,7 @@ during training says so with `render_depth = True`.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from typing import Any, Callable, Dict, List, Optional, Type, Union
 
@@ -110,6 +111,10 @@ class PointsOutcome:
         if self.restart is not None:
             return {"seed_points_restart": float(self.restart), "seed_points_seconds": float(self.seconds)}
         return {"seed_points_added": float(self.added), "seed_points_seconds": float(self.seconds)}
+
+    def recorded_in(self, record: Any) -> Any:
+        """`record` (a `RoundRecord`) with these entries in its `after_add`."""
+        return dataclasses.replace(record, after_add={**record.after_add, **self.fields()})
 
 
 @dataclass(frozen=True)

@@ -14,6 +14,7 @@ this strategy decides when, and records each restart as a `RestartOutcome`.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 from typing import Any, Dict, Optional, Tuple, Type
@@ -131,13 +132,9 @@ class RestartOutcome:
 
     def recorded_in(self, record: Any) -> Any:
         """`record` (a `RoundRecord`) with this restart."""
-        import dataclasses
-
-        changes: Dict[str, Any] = dict(reset=True, num_gaussians_before_reset=self.num_gaussians_before,
-                                       num_gaussians_after_reset=self.num_gaussians_after)
-        if self.points is not None:
-            changes["after_add"] = {**record.after_add, **self.points.fields()}
-        return dataclasses.replace(record, **changes)
+        record = dataclasses.replace(record, reset=True, num_gaussians_before_reset=self.num_gaussians_before,
+                                     num_gaussians_after_reset=self.num_gaussians_after)
+        return record if self.points is None else self.points.recorded_in(record)
 
 
 class Restarts(Strategy):
