@@ -14,6 +14,13 @@ out)
     exit 1
   fi
   mkdir -p "$hold"
+  for dir in benchmarks/results/*; do  # checked before anything moves: a half-done `out` is worse than none
+    name=$(basename "$dir")
+    if [ "$name" != pref_models ] && [ -e "$hold/$name" ]; then
+      echo "device_slim.sh: $hold/$name is left from an earlier lease; run 'bash scripts/device_slim.sh back' first" >&2
+      exit 1
+    fi
+  done
   for dir in benchmarks/results/*; do
     [ "$(basename "$dir")" = pref_models ] || mv "$dir" "$hold/"
   done
@@ -25,7 +32,9 @@ back)
       [ -e "$dir" ] || continue
       name=$(basename "$dir")
       if [ -e "benchmarks/results/$name" ]; then
-        echo "device_slim.sh: benchmarks/results/$name exists; left $dir in place" >&2
+        # made during the lease (a merge of its results): its files are the newer, the hold fills in the rest
+        cp -Rn "$dir/." "benchmarks/results/$name/"
+        rm -rf "$dir"
       else
         mv "$dir" benchmarks/results/
       fi

@@ -63,3 +63,25 @@ def test_out_refuses_uncommitted_results_with_one_line(repo):
     assert done.stderr.strip() == ("device_slim.sh: benchmarks/results has uncommitted changes; commit them before "
                                    "moving it out")
     assert (repo / "benchmarks" / "results" / "real6").is_dir()
+
+
+def test_back_keeps_a_folder_merged_during_the_lease_and_fills_in_the_rest(repo):
+    slim(repo, "out")
+    merged = repo / "benchmarks" / "results" / "real6" / "fox" / "seed0.json"  # merged before `back`
+    merged.parent.mkdir(parents=True)
+    merged.write_text("new run")
+    done = slim(repo, "back")
+    assert done.returncode == 0
+    assert merged.read_text() == "new run"
+    assert (repo / "benchmarks" / "results" / "real6" / "bonsai" / "seed0.json").read_text() == "real6/bonsai/seed0.json"
+    assert git(repo, "status", "--porcelain") == "?? benchmarks/results/real6/fox/\n"
+    assert not (repo / ".dev-results").exists()
+
+
+def test_out_refuses_a_hold_left_from_an_earlier_lease_and_moves_nothing(repo):
+    (repo / ".dev-results" / "real6").mkdir(parents=True)
+    done = slim(repo, "out")
+    assert done.returncode == 1
+    assert done.stderr.strip() == ("device_slim.sh: .dev-results/real6 is left from an earlier lease; run "
+                                   "'bash scripts/device_slim.sh back' first")
+    assert (repo / "benchmarks" / "results" / "tune6" / "room-lab" / "seed1.json").is_file()
