@@ -77,15 +77,18 @@ start|parallel|then|commands)
   n=$(($(ls /tmp/plan-*.txt 2>/dev/null | wc -l) + 1))
   [ "$1" = then ] && after=$((n - 1))
   shift
+  keep_carried
   # A fresh machine (a gap of over 30 s between calls) has lost earlier calls' carry: a sweep started then finds no
-  # scenes and its whole call is lost, so refuse here, in one line, before anything starts.
-  if [ ! -f /tmp/site/.prelude-done ] || [ -z "$(ls -A "$data" 2>/dev/null)" ]; then
-    echo "device_sweep: not started: $([ -f /tmp/site/.prelude-done ] || printf 'the wheels are not all here; ')$([ -n "$(ls -A "$data" 2>/dev/null)" ] || printf 'no scenes in %s; ' "$data")carry them again (scripts/device_calls.py)"
+  # scenes and its whole call is lost, so refuse here (after this call's own carry is in), before anything starts.
+  missing=
+  [ -f /tmp/site/.prelude-done ] || missing="the wheels are not all here; "
+  [ -n "$(ls -A "$data" 2>/dev/null)" ] || missing="${missing}no scenes in $data; "
+  if [ -n "$missing" ]; then
+    echo "device_sweep: not started: ${missing}carry them again (scripts/device_calls.py)"
     exit 3
   fi
   mkdir -p "$bench"
   [ -d "$results" ] && cp -rn "$results"/. "$bench/" 2>/dev/null
-  keep_carried
   [ -f /tmp/sweep.start ] || touch /tmp/sweep.start
   printf '%s\n' "$@" > "/tmp/plan-$n.txt"
   # The group runs from its own copy of the code: the device tool rewrites the working tree on every call, and a
